@@ -1,0 +1,83 @@
+"""``cristal``: one command, one subcommand per job. Every subcommand is a thin layer over a library function.
+
+Subcommand modules only import argparse at the top so that ``cristal --help`` is instant;
+each provides ``register(subparsers)`` and does its heavy imports inside its handler.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import sys
+
+from services.log import setup_logging
+
+# (module, one-line purpose) in the order --help lists them.
+COMMANDS = [
+    "services.demo",
+    "services.sim.cli",
+    "services.io.cli",
+    "services.eval.cli",
+]
+
+EPILOG = """\
+typical session:
+  cristal demo --out runs/demo                 simulate a site and score a trajectory (the README's main job)
+  cristal sim --preset office --seed 1 --out site/   a simulated scene: scan.ply + camera sequences with ground truth
+  cristal scan info site/scan.ply              points, bounds, origin, colours, load time
+  cristal eval site/seq_0/groundtruth.txt est.txt   APE (no alignment and SE(3)), plots
+
+Conventions: poses are camera-to-world in the scan's metric frame, TUM files are
+'timestamp tx ty tz qx qy qz qw'. See docs/ and README.md.
+"""
+
+
+class CliError(Exception):
+    """An error the user can act on: printed as one line, exit code 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="cristal",
+        description="Real-time camera registration in static LiDAR scans.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for mod in COMMANDS:
+        importlib.import_module(mod).register(sub)
+    return p
+
+
+def emit_summary(summary: dict) -> None:
+    """The last line of every job's stdout: one JSON object, machine-readable."""
+    print(json.dumps(summary, sort_keys=True, default=float), flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_logging(-1 if args.quiet else args.verbose)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        rc = args.func(args)
+        return int(rc or 0)
+    except KeyboardInterrupt:
+        logging.getLogger("cristal").error("interrupted")
+        return 130
+    except (CliError, ValueError, FileNotFoundError, OSError) as e:
+        # Errors of our own readers are ValueError subclasses that already name the file and the problem.
+        logging.getLogger("cristal").error("%s", e)
+        if args.verbose > 1:
+            raise
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,57 @@
+"""The in-memory scan: float32 xyz relative to a float64 origin, uint8 rgb.
+
+``world = xyz.astype(float64) + origin``. Survey coordinates are large (e.g. UTM
+eastings of 10^5..10^6 m), so float32 alone would lose millimetres; the origin keeps
+them exact while the bulk data stays 15 bytes per point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from services.geometry.se3 import Pose
+
+__all__ = ["Scan", "ScanError"]
+
+
+class ScanError(ValueError):
+    """A scan file that cannot be used; the message names the file and the problem."""
+
+
+@dataclass
+class Scan:
+    xyz: np.ndarray  # (N, 3) float32, relative to ``origin``
+    rgb: np.ndarray  # (N, 3) uint8
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) float64, world coordinates of xyz == 0
+    stations: list[Pose] = field(default_factory=list)  # scanner poses T_w_scanner in world, when the file has them
+    source: Path | None = None
+    meta: dict = field(default_factory=dict)  # e.g. {"dropped_nonfinite": 12, "format": "ply"}
+
+    def __post_init__(self) -> None:
+        self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float32)
+        self.rgb = np.ascontiguousarray(self.rgb, dtype=np.uint8)
+        self.origin = np.asarray(self.origin, dtype=np.float64).reshape(3)
+        if self.xyz.ndim != 2 or self.xyz.shape[1] != 3:
+            raise ScanError(f"xyz must be (N, 3), got {self.xyz.shape}")
+        if self.rgb.shape != self.xyz.shape:
+            raise ScanError(f"rgb must match xyz {self.xyz.shape}, got {self.rgb.shape}")
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    def world_xyz(self, index: np.ndarray | slice | None = None) -> np.ndarray:
+        """Points in the world (scan) frame, float64. Pass an index to avoid converting everything."""
+        xyz = self.xyz if index is None else self.xyz[index]
+        return xyz.astype(np.float64) + self.origin
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners in world coordinates."""
+        if len(self) == 0:
+            raise ScanError("empty scan has no bounds")
+        return self.xyz.min(axis=0).astype(np.float64) + self.origin, self.xyz.max(axis=0).astype(np.float64) + self.origin
+
+    def subset(self, index: np.ndarray) -> "Scan":
+        return Scan(self.xyz[index], self.rgb[index], self.origin.copy(), list(self.stations), self.source, dict(self.meta))

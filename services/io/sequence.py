@@ -1,0 +1,191 @@
+"""Camera sequences: TUM RGB-D style folders plus ``camera.json``, and video files.
+
+Folder layout (``docs/CONVENTIONS.md``)::
+
+    <sequence>/rgb/<timestamp>.jpg|png
+    <sequence>/rgb.txt           "timestamp rgb/<file>" per line, '#' comments
+    <sequence>/camera.json       intrinsics
+    <sequence>/groundtruth.txt   optional TUM camera-to-world poses
+
+A video file (``.mp4``, ``.avi``, ...) is read frame by frame; its timestamps are the
+container's presentation times in seconds, written with 6 decimals. It needs a
+``camera.json`` beside it (``<video>.camera.json`` or ``camera.json``) or one passed in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose
+from services.io.atomic import atomic_write_bytes, atomic_write_text
+from services.io.trajectory import Trajectory, read_tum, write_tum
+
+__all__ = ["Frame", "Sequence", "SequenceError", "SequenceWriter", "open_sequence", "VIDEO_SUFFIXES"]
+
+VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v"}
+
+
+class SequenceError(ValueError):
+    """A sequence that cannot be read; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    stamp: str  # exact timestamp text from rgb.txt
+    image: np.ndarray  # HxWx3 uint8, BGR (OpenCV order)
+
+
+class Sequence:
+    """A readable camera sequence (folder or video)."""
+
+    def __init__(self, root: Path, camera: Camera, stamps: list[str], files: list[Path] | None,
+                 groundtruth: Trajectory | None, video: Path | None = None):
+        self.root = root
+        self.camera = camera
+        self.stamps = stamps
+        self.files = files
+        self.groundtruth = groundtruth
+        self.video = video
+
+    @property
+    def name(self) -> str:
+        return self.root.name if self.video is None else self.video.stem
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def read(self, i: int) -> Frame:
+        if self.files is None:
+            raise SequenceError("random access is not supported for video; iterate instead")
+        path = self.files[i]
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise SequenceError(f"{path}: cannot decode image")
+        if img.shape[1] != self.camera.width or img.shape[0] != self.camera.height:
+            raise SequenceError(
+                f"{path}: image is {img.shape[1]}x{img.shape[0]} but camera.json says {self.camera.width}x{self.camera.height}")
+        return Frame(self.stamps[i], img)
+
+    def __iter__(self) -> Iterator[Frame]:
+        if self.video is None:
+            for i in range(len(self)):
+                yield self.read(i)
+            return
+        cap = cv2.VideoCapture(str(self.video))
+        try:
+            for stamp in self.stamps:
+                ok, img = cap.read()
+                if not ok:
+                    break
+                yield Frame(stamp, img)
+        finally:
+            cap.release()
+
+    def groundtruth_pose(self, stamp: str) -> Pose | None:
+        if self.groundtruth is None:
+            return None
+        return self.groundtruth.as_dict().get(stamp)
+
+
+def _read_rgb_txt(path: Path) -> list[tuple[str, str]]:
+    if not path.exists():
+        raise SequenceError(f"{path}: missing (a sequence folder needs rgb.txt)")
+    entries = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise SequenceError(f"{path}:{n}: expected 'timestamp rgb/<file>', got {line!r}")
+        try:
+            float(parts[0])
+        except ValueError:
+            raise SequenceError(f"{path}:{n}: timestamp {parts[0]!r} is not a number") from None
+        entries.append((parts[0], parts[1]))
+    if not entries:
+        raise SequenceError(f"{path}: lists no frames")
+    return entries
+
+
+def _find_camera(candidates: list[Path]) -> Camera:
+    for c in candidates:
+        if c.exists():
+            return Camera.load(c)
+    raise SequenceError(f"no camera.json found (looked for {', '.join(str(c) for c in candidates)})")
+
+
+def open_sequence(source: str | Path, camera: Camera | None = None) -> Sequence:
+    """Open a sequence folder or a video file."""
+    src = Path(source)
+    if not src.exists():
+        raise SequenceError(f"{src}: no such sequence folder or video file")
+    if src.is_file():
+        if src.suffix.lower() not in VIDEO_SUFFIXES:
+            raise SequenceError(f"{src}: not a sequence folder nor a video file ({', '.join(sorted(VIDEO_SUFFIXES))})")
+        cam = camera or _find_camera([src.with_suffix(".camera.json"), src.parent / "camera.json"])
+        cap = cv2.VideoCapture(str(src))
+        if not cap.isOpened():
+            raise SequenceError(f"{src}: cannot open video")
+        stamps = []
+        while cap.grab():
+            stamps.append(f"{cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0:.6f}")
+        cap.release()
+        if not stamps:
+            raise SequenceError(f"{src}: video has no frames")
+        gt_path = src.with_suffix(".groundtruth.txt")
+        gt = read_tum(gt_path) if gt_path.exists() else None
+        return Sequence(src.parent, cam, stamps, None, gt, video=src)
+    cam = camera or _find_camera([src / "camera.json"])
+    entries = _read_rgb_txt(src / "rgb.txt")
+    files = [src / rel for _, rel in entries]
+    missing = [f for f in files if not f.exists()]
+    if missing:
+        raise SequenceError(f"{src}: {len(missing)} image(s) listed in rgb.txt are missing, e.g. {missing[0]}")
+    gt_path = src / "groundtruth.txt"
+    gt = read_tum(gt_path) if gt_path.exists() else None
+    return Sequence(src, cam, [s for s, _ in entries], files, gt)
+
+
+class SequenceWriter:
+    """Writes a sequence folder frame by frame; ``rgb.txt`` and ``groundtruth.txt`` are written atomically on close."""
+
+    def __init__(self, root: str | Path, camera: Camera, ext: str = ".jpg", jpeg_quality: int = 90):
+        self.root = Path(root)
+        (self.root / "rgb").mkdir(parents=True, exist_ok=True)
+        self.camera = camera
+        self.ext = ext
+        self.jpeg_quality = jpeg_quality
+        self.entries: list[tuple[str, str]] = []
+        self.gt = Trajectory()
+        camera.save(self.root / "camera.json")
+
+    def add(self, stamp: str, image_bgr: np.ndarray, T_wc: Pose | None = None) -> None:
+        rel = f"rgb/{stamp}{self.ext}"
+        params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality] if self.ext == ".jpg" else []
+        ok, buf = cv2.imencode(self.ext, image_bgr, params)
+        if not ok:
+            raise SequenceError(f"cannot encode frame {stamp}")
+        atomic_write_bytes(self.root / rel, buf.tobytes())
+        self.entries.append((stamp, rel))
+        if T_wc is not None:
+            self.gt.append(stamp, T_wc)
+
+    def close(self) -> None:
+        lines = ["# color images", "# timestamp filename"] + [f"{s} {r}" for s, r in self.entries]
+        atomic_write_text(self.root / "rgb.txt", "\n".join(lines) + "\n")
+        if len(self.gt):
+            write_tum(self.root / "groundtruth.txt", self.gt, header="ground truth camera-to-world\ntimestamp tx ty tz qx qy qz qw")
+
+    def __enter__(self) -> "SequenceWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if exc[0] is None:
+            self.close()

@@ -1,0 +1,96 @@
+"""TUM trajectories: ``timestamp tx ty tz qx qy qz qw`` per line, camera-to-world, '#' comments.
+
+Timestamps are kept as the exact text of the file (``rgb.txt`` and our outputs must
+match character for character), never reformatted through a float.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from services.geometry.se3 import Pose
+from services.io.atomic import atomic_write_text
+
+__all__ = ["Trajectory", "TrajectoryError", "read_tum", "write_tum", "format_tum_line"]
+
+
+class TrajectoryError(ValueError):
+    """A trajectory file that cannot be read; the message names the file and line."""
+
+
+@dataclass
+class Trajectory:
+    """Camera-to-world poses ``T_wc`` keyed by their timestamp text, in file order."""
+
+    stamps: list[str] = field(default_factory=list)
+    poses: list[Pose] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def __iter__(self) -> Iterator[tuple[str, Pose]]:
+        return iter(zip(self.stamps, self.poses))
+
+    def append(self, stamp: str, T_wc: Pose) -> None:
+        self.stamps.append(stamp)
+        self.poses.append(T_wc)
+
+    def as_dict(self) -> dict[str, Pose]:
+        return dict(zip(self.stamps, self.poses))
+
+    def positions(self) -> np.ndarray:
+        return np.array([p.t for p in self.poses]).reshape(-1, 3)
+
+    def times(self) -> np.ndarray:
+        return np.array([float(s) for s in self.stamps])
+
+
+def format_tum_line(stamp: str, T_wc: Pose) -> str:
+    v = T_wc.to_tum()
+    return stamp + " " + " ".join(f"{x:.9f}" for x in v)
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise TrajectoryError(f"{path}: no such trajectory file") from None
+    except UnicodeDecodeError:
+        raise TrajectoryError(f"{path}: not a text file") from None
+    traj = Trajectory()
+    seen: set[str] = set()
+    for n, line in enumerate(text.splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 8:
+            raise TrajectoryError(f"{path}:{n}: expected 8 fields 'timestamp tx ty tz qx qy qz qw', got {len(parts)}")
+        try:
+            float(parts[0])
+            vals = [float(x) for x in parts[1:]]
+        except ValueError:
+            raise TrajectoryError(f"{path}:{n}: fields are not numbers: {line!r}") from None
+        if not np.all(np.isfinite(vals)):
+            raise TrajectoryError(f"{path}:{n}: non-finite value")
+        if np.linalg.norm(vals[3:7]) < 1e-6:
+            raise TrajectoryError(f"{path}:{n}: zero quaternion")
+        if parts[0] in seen:
+            raise TrajectoryError(f"{path}:{n}: duplicate timestamp {parts[0]}")
+        seen.add(parts[0])
+        traj.append(parts[0], Pose.from_tum(vals))
+    return traj
+
+
+def write_tum(path: str | Path, traj: Trajectory | Iterable[tuple[str, Pose]], header: str | None = None) -> None:
+    """Write atomically. ``header`` lines are written as '#' comments."""
+    lines = []
+    if header:
+        lines += [f"# {h}" for h in header.splitlines()]
+    lines += [format_tum_line(s, p) for s, p in traj]
+    atomic_write_text(path, "\n".join(lines) + "\n")
