@@ -1,0 +1,200 @@
+"""Generate a simulated site folder (scan + camera sequences with ground truth), and render ground truth later.
+
+Layout written (``docs/CONVENTIONS.md``)::
+
+    <out>/scan.ply                 the simulated LiDAR scan (world frame, metres)
+    <out>/site.json                preset, seed, settings, stations, lighting, exposure, timings, counts
+    <out>/mesh.npz                 the textured mesh: ground-truth renders for any pose (``SimSite.render``)
+    <out>/<sequence>/rgb/*.jpg, rgb.txt, camera.json, groundtruth.txt
+
+Everything is deterministic from (preset, seed, settings).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose
+from services.io.atomic import atomic_write_text
+from services.io.scan import Scan
+from services.io.sequence import SequenceWriter
+from services.log import progress
+from services.sim.lidar import LidarConfig, scan_exposure, simulate_station
+from services.sim.materials import linear_to_srgb
+from services.sim.mesh import Mesh
+from services.sim.scenes import Lighting, Scene, make_scene
+from services.sim.sensor import AutoExposure, SensorModel, blur_samples, develop, motion_blur
+from services.sim.shading import SceneRenderer
+from services.sim.walk import make_walk
+
+__all__ = ["SiteConfig", "PRESET_DEFAULTS", "generate_site", "SimSite", "SITE_FORMAT_VERSION"]
+
+log = logging.getLogger(__name__)
+SITE_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SiteConfig:
+    preset: str = "office"
+    seed: int = 1
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    sequences: int = 1
+    frames: int = 300
+    fps: float = 30.0
+    width: int = 640
+    height: int = 480
+    hfov_deg: float = 66.0
+    distortion: tuple[float, float, float, float, float] | None = None  # None: an undistorted camera
+    sensor: SensorModel = field(default_factory=SensorModel)
+    walk_speed: float = 0.9
+    start_time: float = 1700000000.0
+
+
+PRESET_DEFAULTS = {
+    "office": SiteConfig(preset="office"),
+    "warehouse": SiteConfig(preset="warehouse", lidar=LidarConfig(step_deg=0.4), frames=600, walk_speed=1.2),
+}
+
+
+def _camera(cfg: SiteConfig) -> Camera:
+    return Camera.from_fov(cfg.width, cfg.height, cfg.hfov_deg, cfg.distortion or (0, 0, 0, 0, 0))
+
+
+def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
+    """Simulate the scan and the camera sequences into ``out``; returns a summary (also in site.json)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    scene = make_scene(cfg.preset, cfg.seed)
+    renderer = SceneRenderer(scene.mesh, texture_seed=cfg.seed)
+    scene.mesh.save(out / "mesh.npz")
+    timings["scene_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    exposure = scan_exposure(renderer, scene.stations, scene.scan_lighting, cfg.seed)
+    rng = np.random.default_rng([cfg.seed, 1])
+    xyz_parts, rgb_parts = [], []
+    for c in progress(scene.stations, desc="LiDAR stations", total=len(scene.stations), unit="station"):
+        xyz, rgb = simulate_station(renderer, c, scene.scan_lighting, exposure, cfg.lidar, rng)
+        xyz_parts.append(xyz)
+        rgb_parts.append(rgb)
+    world = np.concatenate(xyz_parts)
+    stations = [Pose(np.eye(3), c) for c in scene.stations]
+    scan = Scan(world.astype(np.float32), np.concatenate(rgb_parts), np.zeros(3), stations)
+    del world
+    from services.io.scans import save_ply
+
+    save_ply(scan, out / "scan.ply")
+    timings["scan_s"] = time.perf_counter() - t0
+    log.info("scan: %d points from %d stations -> %s", len(scan), len(stations), out / "scan.ply")
+
+    camera = _camera(cfg)
+    seqs = []
+    for k in range(cfg.sequences):
+        t0 = time.perf_counter()
+        name = f"seq_{k:02d}"
+        n = _write_sequence(scene, renderer, cfg, camera, out / name, np.random.default_rng([cfg.seed, 100 + k]))
+        timings[f"{name}_s"] = time.perf_counter() - t0
+        seqs.append({"name": name, "frames": n})
+        log.info("sequence %s: %d frames -> %s", name, n, out / name)
+
+    summary = {
+        "format_version": SITE_FORMAT_VERSION,
+        "preset": cfg.preset,
+        "seed": cfg.seed,
+        "config": _jsonable(asdict(cfg)),
+        "points": len(scan),
+        "faces": scene.mesh.n_faces,
+        "stations": scene.stations.tolist(),
+        "scan_lighting": scene.scan_lighting.to_dict(),
+        "camera_lighting": scene.camera_lighting.to_dict(),
+        "scan_exposure": exposure,
+        "bounds": [list(scene.bounds[0]), list(scene.bounds[1])],
+        "sequences": seqs,
+        "timings": {k: round(v, 2) for k, v in timings.items()},
+    }
+    atomic_write_text(out / "site.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _write_sequence(scene: Scene, renderer: SceneRenderer, cfg: SiteConfig, camera: Camera, root: Path,
+                    rng: np.random.Generator) -> int:
+    duration = cfg.frames / cfg.fps
+    walk = make_walk(scene, renderer, duration, rng, speed=cfg.walk_speed)
+    ae = AutoExposure(cfg.sensor)
+    exp = cfg.sensor.exposure_time_s
+    with SequenceWriter(root, camera, ".jpg", cfg.sensor.jpeg_quality) as w:
+        for i in progress(range(cfg.frames), desc=f"frames {root.name}", total=cfg.frames, unit="frame"):
+            t = i / cfg.fps
+            T_wc = walk.pose(t)
+            rad, depth = renderer.render(T_wc, camera, scene.camera_lighting)
+            Ta, Tb = walk.pose(t - exp / 2), walk.pose(t + exp / 2)
+            n_sub = blur_samples(camera, Ta, Tb, cfg.sensor.max_blur_samples)
+            if n_sub > 1:
+                subs = [walk.pose(t - exp / 2 + (j + 0.5) / n_sub * exp) for j in range(n_sub)]
+                rad = motion_blur(rad, depth, camera, T_wc, subs)
+            gain = ae.update(rad)
+            rgb = develop(rad, gain, cfg.sensor, rng)
+            w.add(f"{cfg.start_time + t:.6f}", rgb[..., ::-1], T_wc)
+    return cfg.frames
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+class SimSite:
+    """A generated site, reopened: ground-truth renders of the mesh for any pose and camera.
+
+    ``render(T_wc, camera)`` returns what the point cloud *should* look like from there (scan-day
+    lighting and the scanner's exposure, same colour pipeline as the scan's points): the target
+    for training and scoring the point renderer. ``lighting="camera"`` gives the camera-day look.
+    """
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        meta_path = self.root / "site.json"
+        if not meta_path.exists():
+            raise FileNotFoundError(f"{meta_path}: not a simulated site folder (run 'cristal sim' first)")
+        self.meta = json.loads(meta_path.read_text())
+        if self.meta.get("format_version") != SITE_FORMAT_VERSION:
+            raise ValueError(f"{meta_path}: site format {self.meta.get('format_version')} is not {SITE_FORMAT_VERSION}")
+        self.mesh = Mesh.load(self.root / "mesh.npz")
+        self.renderer = SceneRenderer(self.mesh, texture_seed=int(self.meta["seed"]))
+        self.scan_lighting = Lighting.from_dict(self.meta["scan_lighting"])
+        self.camera_lighting = Lighting.from_dict(self.meta["camera_lighting"])
+        self.exposure = float(self.meta["scan_exposure"])
+
+    def render(self, T_wc: Pose, camera: Camera, lighting: str = "scan") -> tuple[np.ndarray, np.ndarray]:
+        """(H,W,3) uint8 RGB and (H,W) float32 z-depth in metres (0 where nothing is hit)."""
+        light = {"scan": self.scan_lighting, "camera": self.camera_lighting}[lighting]
+        rad, depth = self.renderer.render(T_wc, camera, light)
+        gain = self.exposure if lighting == "scan" else 0.16 / max(float(rad.mean()), 1e-6)
+        rgb = (linear_to_srgb(rad * gain) * 255.0 + 0.5).astype(np.uint8)
+        return rgb, depth
+
+
+def config_for(preset: str, **overrides) -> SiteConfig:
+    """The preset's defaults with some fields replaced (``lidar_step_deg`` reaches into the LiDAR settings)."""
+    if preset not in PRESET_DEFAULTS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESET_DEFAULTS)}")
+    base = PRESET_DEFAULTS[preset]
+    step = overrides.pop("lidar_step_deg", None)
+    if step is not None:
+        base = replace(base, lidar=replace(base.lidar, step_deg=float(step)))
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    return replace(base, **overrides)

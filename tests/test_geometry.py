@@ -1,0 +1,105 @@
+"""Pose algebra, quaternions and the camera model against independent references (OpenCV, scipy)."""
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from services.geometry.camera import Camera, CameraError
+from services.geometry.se3 import Pose, look_at, quat_to_rotmat, rotmat_to_quat, rotation_angle_deg
+
+
+def random_pose(rng):
+    return Pose(Rotation.random(random_state=rng.integers(1 << 31)).as_matrix(), rng.normal(0, 5, 3))
+
+
+def test_quaternion_matches_scipy_hamilton_xyzw():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        q = Rotation.random(random_state=rng.integers(1 << 31)).as_quat()  # scipy: x, y, z, w
+        np.testing.assert_allclose(quat_to_rotmat(q), Rotation.from_quat(q).as_matrix(), atol=1e-12)
+        q2 = rotmat_to_quat(quat_to_rotmat(q))
+        assert q2[3] >= 0
+        np.testing.assert_allclose(q2, q if q[3] >= 0 else -q, atol=1e-10)
+
+
+def test_compose_inverse_and_direction():
+    rng = np.random.default_rng(1)
+    T_wc, T_cb = random_pose(rng), random_pose(rng)
+    X_b = rng.normal(size=(10, 3))
+    # composition applies right to left, like matrices
+    np.testing.assert_allclose((T_wc @ T_cb).transform(X_b), T_wc.transform(T_cb.transform(X_b)), atol=1e-12)
+    np.testing.assert_allclose((T_wc @ T_wc.inverse()).matrix(), np.eye(4), atol=1e-12)
+    np.testing.assert_allclose((T_wc @ T_cb).matrix(), T_wc.matrix() @ T_cb.matrix(), atol=1e-12)
+    # camera-to-world: t is the camera centre
+    np.testing.assert_allclose(T_wc.transform(np.zeros(3)), T_wc.t)
+
+
+def test_tum_roundtrip_and_interpolation():
+    rng = np.random.default_rng(2)
+    T = random_pose(rng)
+    T2 = Pose.from_tum(T.to_tum())
+    np.testing.assert_allclose(T2.matrix(), T.matrix(), atol=1e-12)
+    U = random_pose(rng)
+    assert T.interpolate(U, 0.0).distance_to(T)[0] < 1e-12
+    assert T.interpolate(U, 1.0).distance_to(U)[1] < 1e-6
+    mid = T.interpolate(U, 0.5)
+    assert abs(T.distance_to(mid)[1] - U.distance_to(mid)[1]) < 1e-6
+
+
+def test_pose_rejects_garbage():
+    with pytest.raises(ValueError):
+        Pose(np.eye(3) * 2, np.zeros(3))
+    with pytest.raises(ValueError):
+        Pose(np.eye(3), [np.nan, 0, 0])
+    with pytest.raises(ValueError):
+        Pose.from_tum([1, 2, 3])
+    with pytest.raises(ValueError):
+        quat_to_rotmat([0, 0, 0, 0])
+
+
+def test_look_at_is_opencv_camera():
+    T_wc = look_at((1, 2, 1.5), (5, 2, 1.5))  # looking along +x, z up
+    np.testing.assert_allclose(T_wc.R[:, 2], [1, 0, 0], atol=1e-12)  # camera z forward
+    np.testing.assert_allclose(T_wc.R[:, 1], [0, 0, -1], atol=1e-12)  # camera y down
+    np.testing.assert_allclose(T_wc.R[:, 0], [0, -1, 0], atol=1e-12)  # camera x right
+    assert rotation_angle_deg(T_wc.R @ T_wc.R.T) < 1e-9
+
+
+def test_camera_projection_matches_opencv_and_inverts():
+    cam = Camera(640, 480, 520.0, 515.0, 321.3, 238.7, (-0.21, 0.07, 0.001, -0.0015, -0.01))
+    rng = np.random.default_rng(3)
+    X = np.column_stack([rng.uniform(-1, 1, 500), rng.uniform(-0.7, 0.7, 500), rng.uniform(1.5, 4, 500)])
+    uv, z = cam.project(X)
+    ref, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cam.K, cam.dist)
+    np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-9)
+    np.testing.assert_allclose(cam.backproject(uv, z), X, atol=1e-9)
+
+
+def test_camera_scaled_keeps_pixel_centres():
+    cam = Camera(640, 480, 500, 500, 319.5, 239.5)
+    half = cam.scaled(0.5)
+    assert (half.width, half.height) == (320, 240)
+    assert half.cx == pytest.approx(159.5) and half.fx == pytest.approx(250)
+
+
+@pytest.mark.parametrize("bad,msg", [
+    ({"fx": 0}, "focal"), ({"fx": -5}, "focal"), ({"fy": float("nan")}, "finite"), ({"width": 0}, "width"),
+    ({"height": 2.5}, "height"), ({"cx": 1e6}, "principal"), ({"distortion": [0, 0, float("inf"), 0, 0]}, "distortion"),
+])
+def test_camera_rejects_absurd_intrinsics(bad, msg):
+    d = {"width": 640, "height": 480, "fx": 500, "fy": 500, "cx": 320, "cy": 240, "distortion": [0, 0, 0, 0, 0]}
+    d.update(bad)
+    with pytest.raises(CameraError, match=msg):
+        Camera.from_dict(d)
+
+
+def test_camera_json_roundtrip(tmp_path):
+    cam = Camera(800, 600, 610, 612, 401, 299, (0.1, -0.02, 0, 0, 0.003))
+    cam.save(tmp_path / "camera.json")
+    assert Camera.load(tmp_path / "camera.json") == cam
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(CameraError, match="bad.json"):
+        Camera.load(tmp_path / "bad.json")
+    with pytest.raises(CameraError, match="missing fields: fy"):
+        Camera.from_dict({"width": 1, "height": 1, "fx": 1, "cx": 0, "cy": 0})

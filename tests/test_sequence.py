@@ -1,0 +1,101 @@
+"""Sequence folders, TUM trajectories and video input: round trips and clear errors."""
+
+import cv2
+import numpy as np
+import pytest
+
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose
+from services.io.sequence import SequenceError, SequenceWriter, open_sequence
+from services.io.trajectory import Trajectory, TrajectoryError, read_tum, write_tum
+
+CAM = Camera(64, 48, 50, 50, 31.5, 23.5)
+
+
+def _frames(n):
+    rng = np.random.default_rng(0)
+    return [(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)) for _ in range(n)]
+
+
+def test_sequence_roundtrip_keeps_timestamp_text(tmp_path):
+    stamps = ["1305031102.175304", "1305031102.211214", "1305031102.243211"]
+    poses = [Pose.from_rotvec_t([0, 0.1 * i, 0], [i, 0, 1]) for i in range(3)]
+    with SequenceWriter(tmp_path / "seq", CAM, ".png") as w:
+        for s, img, T in zip(stamps, _frames(3), poses):
+            w.add(s, img, T)
+    seq = open_sequence(tmp_path / "seq")
+    assert seq.stamps == stamps and seq.camera == CAM and len(seq) == 3
+    frames = list(seq)
+    assert frames[1].stamp == stamps[1] and frames[1].image.shape == (48, 64, 3)
+    np.testing.assert_array_equal(frames[2].image, _frames(3)[2])  # PNG is lossless
+    assert seq.groundtruth.stamps == stamps
+    assert seq.groundtruth_pose(stamps[2]).distance_to(poses[2])[0] < 1e-8
+
+
+def test_tum_exact_stamps_comments_and_errors(tmp_path):
+    p = tmp_path / "t.txt"
+    write_tum(p, Trajectory(["1.50", "2.0"], [Pose.identity(), Pose.from_tum([1, 2, 3, 0, 0, 0, 1])]), header="hi")
+    t = read_tum(p)
+    assert t.stamps == ["1.50", "2.0"] and np.allclose(t.poses[1].t, [1, 2, 3])
+    for text, msg in [("1 2 3\n", "8 fields"), ("1 a 0 0 0 0 0 1\n", "not numbers"), ("1 0 0 0 0 0 0 0\n", "zero quaternion"),
+                      ("1 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", "duplicate"), ("1 nan 0 0 0 0 0 1\n", "non-finite")]:
+        p.write_text(text)
+        with pytest.raises(TrajectoryError, match=msg):
+            read_tum(p)
+    with pytest.raises(TrajectoryError, match="no such"):
+        read_tum(tmp_path / "missing.txt")
+
+
+def test_tum_files_load_in_evo(tmp_path):
+    from evo.tools import file_interface
+
+    p = tmp_path / "t.txt"
+    poses = [Pose.from_rotvec_t([0.1, 0.2 * i, 0], [i, 2, 3]) for i in range(5)]
+    write_tum(p, Trajectory([f"{10 + i / 30:.6f}" for i in range(5)], poses), header="comment")
+    traj = file_interface.read_tum_trajectory_file(str(p))
+    np.testing.assert_allclose(traj.positions_xyz, [q.t for q in poses], atol=1e-8)
+    np.testing.assert_allclose(traj.poses_se3[3], poses[3].matrix(), atol=1e-8)
+
+
+def test_sequence_errors_name_the_problem(tmp_path):
+    with pytest.raises(SequenceError, match="no such"):
+        open_sequence(tmp_path / "nope")
+    d = tmp_path / "s"
+    d.mkdir()
+    with pytest.raises(ValueError, match="camera.json"):
+        open_sequence(d)
+    CAM.save(d / "camera.json")
+    with pytest.raises(SequenceError, match="rgb.txt"):
+        open_sequence(d)
+    (d / "rgb.txt").write_text("# only comments\n")
+    with pytest.raises(SequenceError, match="no frames"):
+        open_sequence(d)
+    (d / "rgb.txt").write_text("0.1 rgb/a.png\n")
+    with pytest.raises(SequenceError, match="missing"):
+        open_sequence(d)
+    (d / "rgb").mkdir()
+    (d / "rgb" / "a.png").write_bytes(b"not an image")
+    with pytest.raises(SequenceError, match="cannot decode"):
+        open_sequence(d).read(0)
+    cv2.imwrite(str(d / "rgb" / "a.png"), np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(SequenceError, match="camera.json says 64x48"):
+        open_sequence(d).read(0)
+
+
+def test_video_input(tmp_path):
+    path = tmp_path / "walk.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    if not vw.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG video")
+    for img in _frames(5):
+        vw.write(img)
+    vw.release()
+    CAM.save(tmp_path / "walk.camera.json")
+    seq = open_sequence(path)
+    assert len(seq) == 5
+    frames = list(seq)
+    assert len(frames) == 5 and frames[0].image.shape == (48, 64, 3)
+    assert [float(f.stamp) for f in frames] == pytest.approx([0.0, 0.1, 0.2, 0.3, 0.4], abs=1e-3)
+    with pytest.raises(SequenceError, match="not a sequence folder"):
+        (tmp_path / "x.txt").write_text("")
+        open_sequence(tmp_path / "x.txt")
