@@ -74,9 +74,10 @@ def _build(cent, tmin, tmax, leaf_size):
             start[node] = lo
             count[node] = hi - lo
             continue
-        # split on the longest axis of the centroid bounds, at the median
+        # binned surface-area heuristic on the longest axis of the centroid bounds (median split as fallback)
         best_axis = 0
         best_ext = -1.0
+        cmin = np.empty(3)
         for k in range(3):
             mn = 1e300
             mx = -1e300
@@ -84,6 +85,7 @@ def _build(cent, tmin, tmax, leaf_size):
                 c = cent[order[i], k]
                 mn = min(mn, c)
                 mx = max(mx, c)
+            cmin[k] = mn
             if mx - mn > best_ext:
                 best_ext = mx - mn
                 best_axis = k
@@ -95,6 +97,50 @@ def _build(cent, tmin, tmax, leaf_size):
         for i in range(hi - lo):
             order[lo + i] = sub[idx[i]]
         mid = (lo + hi) // 2
+        if best_ext > 0:
+            nbins = 16
+            bcount = np.zeros(nbins, np.int64)
+            bl = np.full((nbins, 3), 1e300)
+            bh = np.full((nbins, 3), -1e300)
+            for i in range(lo, hi):
+                t = order[i]
+                bi = min(int((cent[t, best_axis] - cmin[best_axis]) / best_ext * nbins), nbins - 1)
+                bcount[bi] += 1
+                for k in range(3):
+                    bl[bi, k] = min(bl[bi, k], tmin[t, k])
+                    bh[bi, k] = max(bh[bi, k], tmax[t, k])
+            best_cost = 1e300
+            best_split = -1
+            for sidx in range(1, nbins):
+                nl = 0
+                nr = 0
+                ll = np.full(3, 1e300)
+                lh = np.full(3, -1e300)
+                rl = np.full(3, 1e300)
+                rh = np.full(3, -1e300)
+                for bi in range(nbins):
+                    if bcount[bi] == 0:
+                        continue
+                    if bi < sidx:
+                        nl += bcount[bi]
+                        for k in range(3):
+                            ll[k] = min(ll[k], bl[bi, k])
+                            lh[k] = max(lh[k], bh[bi, k])
+                    else:
+                        nr += bcount[bi]
+                        for k in range(3):
+                            rl[k] = min(rl[k], bl[bi, k])
+                            rh[k] = max(rh[k], bh[bi, k])
+                if nl == 0 or nr == 0:
+                    continue
+                dl = lh - ll
+                dr = rh - rl
+                cost = nl * (dl[0] * dl[1] + dl[1] * dl[2] + dl[2] * dl[0]) + nr * (dr[0] * dr[1] + dr[1] * dr[2] + dr[2] * dr[0])
+                if cost < best_cost:
+                    best_cost = cost
+                    best_split = nl
+            if best_split > 0:
+                mid = lo + best_split  # order is sorted along the axis, bins are contiguous in it
         l_node = nodes
         r_node = nodes + 1
         nodes += 2
@@ -112,7 +158,7 @@ def _build(cent, tmin, tmax, leaf_size):
 
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> BVH:
-    """BVH over triangles ``vertices[faces]`` (median split, 4 triangles per leaf)."""
+    """BVH over triangles ``vertices[faces]`` (binned SAH split, 4 triangles per leaf)."""
     V = np.asarray(vertices, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64)
     if len(F) == 0:

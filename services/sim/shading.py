@@ -25,25 +25,30 @@ __all__ = ["SceneRenderer"]
 
 
 @nb.njit(cache=True, inline="always")
-def _bilinear(buf, off, size, u, v, out3):
-    # repeat wrap; texel centres at (i + 0.5) / size
+def _bilinear(buf, off, size, u, v):
+    """Bilinear texture lookup with repeat wrap; texel centres at (i + 0.5) / size. Returns (r, g, b)."""
     fu = (u - np.floor(u)) * size - 0.5
     fv = (v - np.floor(v)) * size - 0.5
     i0 = int(np.floor(fu))
     j0 = int(np.floor(fv))
     au = fu - i0
     av = fv - j0
-    for c in range(3):
-        out3[c] = 0.0
-    for dj in range(2):
-        j = (j0 + dj) % size
-        wv = av if dj == 1 else 1.0 - av
-        for di in range(2):
-            i = (i0 + di) % size
-            w = wv * (au if di == 1 else 1.0 - au)
-            base = off + (j * size + i) * 3
-            for c in range(3):
-                out3[c] += w * buf[base + c]
+    i1 = (i0 + 1) % size
+    j1 = (j0 + 1) % size
+    i0 = i0 % size
+    j0 = j0 % size
+    b00 = off + (j0 * size + i0) * 3
+    b01 = off + (j0 * size + i1) * 3
+    b10 = off + (j1 * size + i0) * 3
+    b11 = off + (j1 * size + i1) * 3
+    w00 = (1 - au) * (1 - av)
+    w01 = au * (1 - av)
+    w10 = (1 - au) * av
+    w11 = au * av
+    r = w00 * buf[b00] + w01 * buf[b01] + w10 * buf[b10] + w11 * buf[b11]
+    g = w00 * buf[b00 + 1] + w01 * buf[b01 + 1] + w10 * buf[b10 + 1] + w11 * buf[b11 + 1]
+    b = w00 * buf[b00 + 2] + w01 * buf[b01 + 2] + w10 * buf[b10 + 2] + w11 * buf[b11 + 2]
+    return r, g, b
 
 
 @nb.njit(cache=True, parallel=True)
@@ -79,13 +84,11 @@ def _shade(orig, dirs, t, tri, bu, bv, spread, uv, mat, normals, uvdens, tex, of
         l0 = min(int(lvl), n_levels - 1)
         l1 = min(l0 + 1, n_levels - 1)
         a = min(lvl - l0, 1.0)
-        c0 = np.empty(3)
-        c1 = np.empty(3)
-        _bilinear(tex, offs[m, l0], tex_size >> l0, u, v, c0)
-        _bilinear(tex, offs[m, l1], tex_size >> l1, u, v, c1)
-        alb0 = (1 - a) * c0[0] + a * c1[0]
-        alb1 = (1 - a) * c0[1] + a * c1[1]
-        alb2 = (1 - a) * c0[2] + a * c1[2]
+        r0, g0, b0 = _bilinear(tex, offs[m, l0], tex_size >> l0, u, v)
+        r1, g1, b1 = _bilinear(tex, offs[m, l1], tex_size >> l1, u, v)
+        alb0 = (1 - a) * r0 + a * r1
+        alb1 = (1 - a) * g0 + a * g1
+        alb2 = (1 - a) * b0 + a * b1
         e0, e1, e2 = ambient[0], ambient[1], ambient[2]
         s0 = 0.0
         s1 = 0.0
