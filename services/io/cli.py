@@ -1,0 +1,116 @@
+"""``cristal scan info`` (what is in a scan file) and ``cristal scan convert`` (to PLY, optionally thinned)."""
+
+from __future__ import annotations
+
+import argparse
+
+EPILOG = """\
+examples:
+  cristal scan info site/scan.ply                  points, world bounds, origin, colours, stations, load time
+  cristal scan info survey.e57 --no-cache          parse the file even if a cache exists (and do not write one)
+  cristal scan convert survey.e57 scan.ply         all E57 scans merged into one PLY in the world frame
+  cristal scan convert big.laz small.ply --voxel 0.02    one point per 2 cm voxel (colour = voxel mean)
+  cristal scan convert big.ply half.ply --fraction 0.5   a random half (same --seed, same half)
+
+formats: .ply (binary or ASCII; uchar, ushort or float colours), .e57 (every scan, moved by its pose
+into the file's world frame), .las/.laz (16-bit colours scaled to 8 bit). Points with NaN/inf
+coordinates are dropped and counted. The first load writes '<file>.cristal-cache/' (or
+~/.cache/cristal/ when the scan's folder is read-only); later loads map it in milliseconds
+and re-parse by themselves when the file changes.
+"""
+
+INFO_EPILOG = """\
+example:
+  cristal scan info site/scan.ply
+  cristal scan info survey.e57 --no-cache --allow-no-color
+
+The last stdout line is a JSON summary (points, bounds_min/max, origin, stations, from_cache, ...).
+"""
+
+CONVERT_EPILOG = """\
+examples:
+  cristal scan convert survey.e57 scan.ply                 merge all scans, binary PLY
+  cristal scan convert scan.laz scan.ply --voxel 0.01      1 cm voxel grid: nearest-to-mean point, mean colour
+  cristal scan convert scan.ply preview.ply --fraction 0.05 --ascii   5 % random subset as ASCII PLY
+
+Coordinates are written in the world frame: double when the scan needed an origin (large survey
+coordinates), float otherwise. Scanner stations are kept as 'comment cristal_station' header lines.
+"""
+
+
+def register(sub) -> None:
+    p = sub.add_parser("scan", help="inspect or convert a LiDAR scan (.ply, .e57, .las, .laz)",
+                       description="Inspect or convert a LiDAR scan.", epilog=EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    ss = p.add_subparsers(dest="scan_command", metavar="ACTION", required=True)
+
+    i = ss.add_parser("info", help="points, bounds, origin, colours, stations, load time",
+                      description="Load a scan and describe it.", epilog=INFO_EPILOG,
+                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    i.add_argument("scan", metavar="SCAN", help="scan file (.ply, .e57, .las, .laz)")
+    i.add_argument("--no-cache", action="store_true", help="parse the file; neither read nor write the cache")
+    i.add_argument("--allow-no-color", action="store_true", help="accept a scan without colours (grey points)")
+    i.set_defaults(func=run_info)
+
+    c = ss.add_parser("convert", help="convert to PLY, optionally voxel- or randomly thinned",
+                      description="Convert a scan to PLY (world frame, uchar colours).", epilog=CONVERT_EPILOG,
+                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    c.add_argument("input", metavar="IN", help="scan file (.ply, .e57, .las, .laz)")
+    c.add_argument("output", metavar="OUT.ply", help="PLY file to write (atomically)")
+    thin = c.add_mutually_exclusive_group()
+    thin.add_argument("--voxel", type=float, metavar="M", help="keep one point per voxel of M metres")
+    thin.add_argument("--fraction", type=float, metavar="F", help="keep a random fraction F in (0, 1] of the points")
+    c.add_argument("--seed", type=int, default=0, help="random seed for --fraction (default 0)")
+    c.add_argument("--ascii", action="store_true", help="write ASCII PLY (large; for inspection)")
+    c.add_argument("--no-cache", action="store_true", help="parse the input; neither read nor write its cache")
+    c.add_argument("--allow-no-color", action="store_true", help="accept an input without colours (grey points)")
+    c.set_defaults(func=run_convert)
+
+
+def run_info(args) -> int:
+    from services.cli import emit_summary
+    from services.io.scans import load_scan, scan_info
+
+    scan = load_scan(args.scan, cache=not args.no_cache, require_color=not args.allow_no_color)
+    s = scan_info(scan)
+    lo, hi = s["bounds_min"], s["bounds_max"]
+    print(f"{args.scan}: {s['points']:,} points ({s['format']}), "
+          f"loaded in {s['load_seconds']:.2f} s {'from the cache' if s['from_cache'] else 'by parsing the file'}")
+    print(f"  bounds (world): x {lo[0]:.3f} .. {hi[0]:.3f}, y {lo[1]:.3f} .. {hi[1]:.3f}, z {lo[2]:.3f} .. {hi[2]:.3f} "
+          f"(extent {hi[0] - lo[0]:.2f} x {hi[1] - lo[1]:.2f} x {hi[2] - lo[2]:.2f} m)")
+    print(f"  origin: {' '.join(f'{v:.3f}' for v in s['origin'])}"
+          + (" (coordinates stored relative to it)" if any(s["origin"]) else ""))
+    print(f"  colour: {'yes' if s['has_color'] else 'no (grey)'}")
+    print(f"  stations: {len(s['stations'])}")
+    for k, st in enumerate(s["stations"]):
+        print(f"    {k}: t = {st[0]:.3f} {st[1]:.3f} {st[2]:.3f}, q_xyzw = {st[3]:.4f} {st[4]:.4f} {st[5]:.4f} {st[6]:.4f}")
+    print(f"  dropped: {s['dropped_nonfinite']} non-finite, {s['dropped_invalid']} flagged invalid")
+    emit_summary(s)
+    return 0
+
+
+def run_convert(args) -> int:
+    import time
+    from pathlib import Path
+
+    from services.cli import emit_summary
+    from services.io.decimate import random_decimate, voxel_decimate
+    from services.io.scan import ScanError
+    from services.io.scans import load_scan, save_ply
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".ply":
+        raise ScanError(f"{out}: the output must be a .ply file")
+    t0 = time.perf_counter()
+    scan = load_scan(args.input, cache=not args.no_cache, require_color=not args.allow_no_color)
+    n_in = len(scan)
+    if args.voxel is not None:
+        scan = voxel_decimate(scan, args.voxel)
+    elif args.fraction is not None:
+        scan = random_decimate(scan, args.fraction, seed=args.seed)
+    save_ply(scan, out, binary=not args.ascii)
+    dt = time.perf_counter() - t0
+    print(f"{args.input} -> {out}: {n_in:,} -> {len(scan):,} points, {len(scan.stations)} stations, {dt:.1f} s")
+    emit_summary({"input": str(args.input), "output": str(out), "points_in": n_in, "points_out": len(scan),
+                  "stations": len(scan.stations), "seconds": round(dt, 3)})
+    return 0

@@ -1,0 +1,186 @@
+"""Load and save LiDAR scans: ``load_scan`` (PLY, E57, LAS/LAZ, cached), ``save_ply``, ``scan_info``.
+
+Every reader streams its file in chunks into one preallocated float32/uint8 pair
+(``PointSink``), so a 100 M-point scan is held once at 15 bytes per point, never as
+float64 copies. Large survey coordinates are stored relative to an origin rounded to
+whole metres (see ``services.io.scan``). After a successful parse the result is cached
+beside the file (``services.io.scan_cache``) and memory-mapped on the next load.
+
+Every failure is a ``ScanError`` whose message names the file and the problem.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from services.io.scan import Scan, ScanError
+
+__all__ = ["load_scan", "save_ply", "scan_info", "READER_VERSION", "SUFFIXES", "PointSink", "GREY"]
+
+log = logging.getLogger(__name__)
+
+# Bump when a reader's output changes: cached results of older readers are then re-parsed.
+READER_VERSION = 1
+SUFFIXES = {".ply": "ply", ".e57": "e57", ".las": "las", ".laz": "las"}
+CHUNK = 2_000_000  # points converted at a time: bounds the float64 temporaries to ~50 MB
+LARGE = 1e4  # coordinates beyond this (metres) get an origin, so float32 keeps millimetres
+GREY = 128  # colour given to every point of a colourless scan when require_color=False
+STATION_TAG = "cristal_station"  # PLY comment: "cristal_station tx ty tz qx qy qz qw" (scanner-to-world)
+
+
+class PointSink:
+    """Preallocated float32 xyz / uint8 rgb that readers fill chunk by chunk.
+
+    ``add`` drops non-finite points (counted), fixes the origin from the first chunk
+    with finite points, and stores ``xyz - origin`` as float32.
+    """
+
+    def __init__(self, capacity: int):
+        self.xyz = np.empty((capacity, 3), np.float32)
+        self.rgb = np.empty((capacity, 3), np.uint8)
+        self.n = 0
+        self.dropped = 0
+        self.origin: np.ndarray | None = None
+
+    def add(self, xyz: np.ndarray, rgb: np.ndarray | None) -> None:
+        """Append a chunk: ``xyz`` (M, 3) any float dtype in world coordinates, ``rgb`` (M, 3) uint8 or None (grey)."""
+        finite = np.isfinite(xyz).all(axis=1)
+        if not finite.all():
+            self.dropped += int((~finite).sum())
+            xyz = xyz[finite]
+            rgb = None if rgb is None else rgb[finite]
+        m = len(xyz)
+        if m == 0:
+            return
+        if self.origin is None:
+            big = np.abs(xyz).max() > LARGE
+            self.origin = np.round((xyz.min(axis=0).astype(np.float64) + xyz.max(axis=0)) / 2) if big else np.zeros(3)
+        if self.n + m > len(self.xyz):
+            raise ScanError(f"more points than the header announced ({len(self.xyz)})")
+        out = self.xyz[self.n:self.n + m]
+        if self.origin.any():
+            np.subtract(xyz, self.origin, out=out, casting="unsafe")  # float64 arithmetic, float32 result
+        else:
+            out[:] = xyz
+        self.rgb[self.n:self.n + m] = GREY if rgb is None else rgb
+        self.n += m
+
+    def scan(self, path: Path, fmt: str, stations=(), **meta) -> Scan:
+        """The filled points as a ``Scan`` (views, no copy); ``meta`` gets format and dropped counts."""
+        if self.dropped:
+            log.warning("%s: dropped %d non-finite points (NaN/inf coordinates)", path, self.dropped)
+        meta = {"format": fmt, "dropped_nonfinite": self.dropped, **meta}
+        origin = np.zeros(3) if self.origin is None else self.origin
+        return Scan(self.xyz[:self.n], self.rgb[:self.n], origin, list(stations), path, meta)
+
+
+def _reader(fmt: str):
+    if fmt == "ply":
+        from services.io.ply import read_ply as read
+    elif fmt == "e57":
+        from services.io.e57 import read_e57 as read
+    else:
+        from services.io.las import read_las as read
+    return read
+
+
+def load_scan(path: str | Path, *, cache: bool = True, require_color: bool = True) -> Scan:
+    """Read a ``.ply``, ``.e57``, ``.las`` or ``.laz`` scan into world-frame points (relative to ``scan.origin``).
+
+    ``cache``: reuse / write the parsed arrays in ``<file>.cristal-cache/`` (memory-mapped, read-only arrays).
+    ``require_color``: a scan without colour channels is an error; with False its points are grey (128).
+    ``scan.meta`` reports ``format``, ``dropped_nonfinite``, ``has_color``, ``from_cache``, ``load_seconds``.
+    """
+    t0 = time.perf_counter()
+    path = Path(path)
+    fmt = SUFFIXES.get(path.suffix.lower())
+    if fmt is None:
+        raise ScanError(f"{path}: unknown scan format '{path.suffix}' (expected one of {', '.join(SUFFIXES)})")
+    if not path.is_file():
+        raise ScanError(f"{path}: no such file" if not path.exists() else f"{path}: not a regular file")
+    from services.io import scan_cache
+
+    scan = scan_cache.load(path, READER_VERSION) if cache else None
+    if scan is None:
+        stat = path.stat()  # before parsing: a file rewritten meanwhile will not match the cache
+        try:
+            scan = _reader(fmt)(path)
+        except ScanError as e:
+            msg = str(e)
+            raise ScanError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+        except MemoryError:
+            raise
+        except OSError as e:  # permissions, I/O errors (parser format errors are not OSError)
+            raise ScanError(f"{path}: cannot read the file ({e.strerror or e})") from e
+        except Exception as e:  # a parser's own exception: never let its traceback reach the user
+            first = (str(e).strip().splitlines() or [""])[0][:300]  # some parsers add pages of debug text
+            raise ScanError(f"{path}: cannot read this {path.suffix[1:].upper()} file, it looks truncated or corrupt "
+                            f"({type(e).__name__}: {first})") from e
+        if len(scan) == 0:
+            dropped = scan.meta.get("dropped_nonfinite", 0)
+            raise ScanError(f"{path}: the scan has no points" + (f" ({dropped} non-finite points dropped)" if dropped else ""))
+        scan.meta["from_cache"] = False
+        if cache:
+            scan_cache.save(path, scan, READER_VERSION, stat)
+    if not scan.meta.get("has_color", True) and require_color:
+        raise ScanError(f"{path}: the scan has no colour channels (red/green/blue); "
+                        "load it with require_color=False to use grey points")
+    scan.meta["load_seconds"] = round(time.perf_counter() - t0, 4)
+    return scan
+
+
+def save_ply(scan: Scan, path: str | Path, binary: bool = True) -> None:
+    """Write ``scan`` as PLY, atomically: world x y z (double when the origin is non-zero, else float), uchar rgb.
+
+    Station poses go into ``comment cristal_station tx ty tz qx qy qz qw`` lines, which ``load_scan`` reads back.
+    """
+    from services.io.atomic import atomic_write
+
+    path = Path(path)
+    wide = bool(np.any(scan.origin != 0))
+    ftype, fdt = ("double", "f8") if wide else ("float", "f4")
+    lines = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0", "comment written by cristal"]
+    lines += [f"comment {STATION_TAG} " + " ".join(repr(float(v)) for v in s.to_tum()) for s in scan.stations]
+    lines += [f"element vertex {len(scan)}"] + [f"property {ftype} {a}" for a in "xyz"]
+    lines += [f"property uchar {c}" for c in ("red", "green", "blue")] + ["end_header", ""]
+    dtype = np.dtype([(a, "<" + fdt) for a in "xyz"] + [(c, "u1") for c in ("red", "green", "blue")])
+    with atomic_write(path, "wb") as f:
+        f.write("\n".join(lines).encode("ascii"))
+        for i in range(0, len(scan), CHUNK):
+            sl = slice(i, i + CHUNK)
+            xyz = scan.world_xyz(sl) if wide else scan.xyz[sl]
+            if binary:
+                rec = np.empty(len(xyz), dtype)
+                for k, a in enumerate("xyz"):
+                    rec[a] = xyz[:, k]
+                for k, c in enumerate(("red", "green", "blue")):
+                    rec[c] = scan.rgb[sl, k]
+                f.write(rec.data)
+            else:
+                fmt = "%.6f" if wide else "%.9g"
+                rows = np.column_stack([xyz.astype(np.float64), scan.rgb[sl]])
+                np.savetxt(f, rows, fmt=[fmt] * 3 + ["%d"] * 3)
+
+
+def scan_info(scan: Scan) -> dict:
+    """A JSON-able summary: points, world bounds, origin, colour, stations, dropped points, load time, cache use."""
+    lo, hi = scan.bounds() if len(scan) else (np.full(3, np.nan), np.full(3, np.nan))
+    m = scan.meta
+    return {
+        "source": None if scan.source is None else str(scan.source),
+        "format": m.get("format"),
+        "points": len(scan),
+        "bounds_min": [round(float(v), 4) for v in lo],
+        "bounds_max": [round(float(v), 4) for v in hi],
+        "origin": [float(v) for v in scan.origin],
+        "has_color": bool(m.get("has_color", True)),
+        "stations": [[round(float(v), 6) for v in s.to_tum()] for s in scan.stations],
+        "dropped_nonfinite": int(m.get("dropped_nonfinite", 0)),
+        "dropped_invalid": int(m.get("dropped_invalid", 0)),
+        "load_seconds": m.get("load_seconds"),
+        "from_cache": bool(m.get("from_cache", False)),
+    }
