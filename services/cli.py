@@ -10,6 +10,7 @@ import argparse
 import importlib
 import json
 import logging
+import os
 import sys
 
 from services.log import setup_logging
@@ -20,6 +21,7 @@ COMMANDS = [
     "services.sim.cli",
     "services.io.cli",
     "services.eval.cli",
+    "services.render.cli",
 ]
 
 EPILOG = """\
@@ -47,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
     p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    p.add_argument("-j", "--threads", type=int, metavar="N",
+                   help="CPU threads for numba, torch and OpenCV (default: all cores; on a busy box fewer can be faster)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for mod in COMMANDS:
         importlib.import_module(mod).register(sub)
@@ -62,6 +66,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(-1 if args.quiet else args.verbose)
+    if args.threads:
+        # read by numba and torch when they are first imported (handlers import them lazily)
+        for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = str(args.threads)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

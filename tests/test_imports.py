@@ -1,0 +1,19 @@
+"""Headset and robot clients import the wire contract and the light modules without torch (or numba)."""
+
+import subprocess
+import sys
+
+LIGHT = ["protocol", "services.geometry.se3", "services.geometry.camera", "services.io.sequence",
+         "services.io.trajectory", "services.io.atomic", "services.cli"]
+
+
+def test_light_modules_import_without_torch():
+    code = "import sys\n" + "".join(f"import {m}\n" for m in LIGHT) + \
+        "bad = [m for m in ('torch', 'numba', 'scipy', 'matplotlib') if m in sys.modules]\nassert not bad, bad\n"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_cli_help_is_fast_and_lists_commands():
+    out = subprocess.run([sys.executable, "-m", "services.cli", "--help"], check=True, capture_output=True, text=True).stdout
+    for cmd in ("demo", "sim", "sim-view", "scan", "eval"):
+        assert cmd in out
