@@ -1,0 +1,166 @@
+"""The neural point renderer: splat -> hierarchical depth filter -> U-Net hole filling.
+
+``Renderer(scan).render(T_wc, camera)`` returns what a camera at ``T_wc`` would see of the
+scan: a hole-filled RGB image, the background-filtered *measured* depth (0 where no point
+survived), a dense depth where holes are filled by push-pull, and the mask telling the two
+apart. Localization must back-project only ``measured`` pixels (or accept filled depth
+knowingly). The scan is prepared once (Morton-sorted chunks on the CPU, a 16-byte-per-point
+tensor on CUDA); renders never copy it.
+
+CPU path: numba splat + torch filter/U-Net. CUDA path: torch throughout. Both give the
+same images (tests compare them).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose
+from services.io.scan import Scan
+from services.render.cloud import prepare_cloud
+from services.render.depth_filter import FilterConfig, fill_depth, hierarchical_depth_filter
+from services.render.splat import SplatConfig, splat
+from services.render.unet import load_holefill
+
+__all__ = ["RenderConfig", "Render", "Renderer", "STAGES", "cubemap_poses"]
+
+log = logging.getLogger(__name__)
+STAGES = ("splat", "filter", "full")
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    splat: SplatConfig = field(default_factory=SplatConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    weights: str | None = None  # hole-filling weights; None = the shipped default
+    holefill_scale: float = 1.0  # run the U-Net at this fraction of the resolution (CPU speed knob)
+
+
+@dataclass
+class Render:
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 metres, measured (filtered) depth, 0 where none
+    depth_filled: np.ndarray  # (H, W) float32 metres, dense (push-pull in holes)
+    measured: np.ndarray  # (H, W) bool, True where depth comes from scan points
+    T_wc: Pose
+    camera: Camera
+    timings: dict[str, float] = field(default_factory=dict)  # milliseconds per stage
+
+    @property
+    def hole_fraction(self) -> float:
+        return float(1.0 - self.measured.mean())
+
+    def backproject(self, uv: np.ndarray, filled: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N,3) of pixels ``uv`` (N,2) and a validity mask (measured depth, unless ``filled``)."""
+        px = np.clip(np.round(uv).astype(int), 0, [self.camera.width - 1, self.camera.height - 1])
+        d = (self.depth_filled if filled else self.depth)[px[:, 1], px[:, 0]]
+        ok = d > 0
+        Xc = self.camera.backproject(uv, d)
+        return self.T_wc.transform(Xc), ok
+
+
+def _device(device: str | None) -> torch.device:
+    if device in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+class Renderer:
+    def __init__(self, scan: Scan, cfg: RenderConfig = RenderConfig(), device: str | None = None, holefill: bool = True):
+        self.cfg = cfg
+        self.device = _device(device)
+        self.origin = scan.origin.copy()
+        t0 = time.perf_counter()
+        if self.device.type == "cuda":
+            from services.render.splat_torch import DeviceCloud
+
+            self.cloud = DeviceCloud(scan.xyz, scan.rgb, scan.origin, self.device)
+        else:
+            self.cloud = prepare_cloud(scan)
+        log.info("renderer: %d points prepared on %s in %.2f s", len(scan), self.device, time.perf_counter() - t0)
+        self.net = load_holefill(cfg.weights, self.device) if holefill else None
+
+    # ---- stages ----------------------------------------------------------
+    def _splat(self, T_wc: Pose, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.device.type == "cuda":
+            from services.render.splat_torch import splat_torch
+
+            rgb, depth, _ = splat_torch(self.cloud, T_wc, camera, self.cfg.splat)
+            return rgb, depth
+        r = splat(self.cloud, T_wc, camera, self.cfg.splat)
+        return torch.from_numpy(r.rgb), torch.from_numpy(r.depth)
+
+    @torch.no_grad()
+    def render(self, T_wc: Pose, camera: Camera, stage: str = "full") -> Render:
+        """Render the scan from camera-to-world ``T_wc`` with ``camera``'s intrinsics and distortion."""
+        if stage not in STAGES:
+            raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+        if stage == "full" and self.net is None:
+            raise ValueError("this renderer was built without hole filling; use stage='filter'")
+        tm: dict[str, float] = {}
+        t0 = time.perf_counter()
+        rgb, depth = self._splat(T_wc, camera)
+        tm["splat_ms"] = 1e3 * (time.perf_counter() - t0)
+        if stage == "splat":
+            keep = depth > 0
+        else:
+            t0 = time.perf_counter()
+            keep = hierarchical_depth_filter(depth, self.cfg.filter)
+            tm["filter_ms"] = 1e3 * (time.perf_counter() - t0)
+        depth = torch.where(keep, depth, torch.zeros_like(depth))
+        rgb01 = rgb.permute(2, 0, 1)[None] / 255.0 * keep[None, None]
+        mask = keep[None, None].float()
+        t0 = time.perf_counter()
+        if stage == "full":
+            rgb01 = self._holefill(rgb01, mask, depth[None, None])
+            tm["holefill_ms"] = 1e3 * (time.perf_counter() - t0)
+            t0 = time.perf_counter()
+        dense = fill_depth(depth[None, None], keep[None, None])[0, 0]
+        tm["depthfill_ms"] = 1e3 * (time.perf_counter() - t0)
+        out = (rgb01[0].permute(1, 2, 0) * 255.0 + 0.5).clamp(0, 255).to(torch.uint8)
+        return Render(out.cpu().numpy(), depth.cpu().numpy().astype(np.float32), dense.cpu().numpy().astype(np.float32),
+                      keep.cpu().numpy(), T_wc, camera, tm)
+
+    def _holefill(self, rgb01: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        s = self.cfg.holefill_scale
+        if s >= 1.0:
+            return self.net(rgb01, mask, depth)
+        # the network at reduced resolution; measured pixels keep their full-resolution colour
+        H, W = rgb01.shape[-2:]
+        size = (max(8, round(H * s)), max(8, round(W * s)))
+        m_s = F.adaptive_avg_pool2d(mask, size)
+        rgb_s = F.adaptive_avg_pool2d(rgb01, size) / m_s.clamp_min(1e-6)
+        d_s = F.adaptive_avg_pool2d(depth, size) / m_s.clamp_min(1e-6)
+        ms = (m_s > 0.2).float()
+        filled = self.net(rgb_s * ms, ms, d_s * ms)
+        up = F.interpolate(filled, size=(H, W), mode="bilinear", align_corners=False)
+        return mask * rgb01 + (1 - mask) * up
+
+    def render_batch(self, poses: list[Pose], camera: Camera, stage: str = "full") -> list[Render]:
+        """Several views with the same intrinsics (cubemaps, many clients). Shares the prepared scan."""
+        return [self.render(T, camera, stage) for T in poses]
+
+    def cubemap(self, position: np.ndarray, size: int = 256, stage: str = "full") -> list[Render]:
+        """Six 90-degree faces around ``position`` (world), each a ``size`` x ``size`` pinhole view."""
+        cam = Camera(size, size, size / 2.0, size / 2.0, (size - 1) / 2.0, (size - 1) / 2.0)
+        return self.render_batch(cubemap_poses(position), cam, stage)
+
+
+def cubemap_poses(position) -> list[Pose]:
+    """Camera-to-world poses of the six cube faces (+x, -x, +y, -y, +z, -z viewing directions; world z up)."""
+    p = np.asarray(position, dtype=np.float64)
+    faces = []
+    for fwd, down in (((1, 0, 0), (0, 0, -1)), ((-1, 0, 0), (0, 0, -1)), ((0, 1, 0), (0, 0, -1)),
+                      ((0, -1, 0), (0, 0, -1)), ((0, 0, 1), (0, 1, 0)), ((0, 0, -1), (0, -1, 0))):
+        z = np.asarray(fwd, float)
+        y = np.asarray(down, float)
+        x = np.cross(y, z)
+        faces.append(Pose(np.stack([x, y, z], 1), p))
+    return faces
