@@ -8,6 +8,11 @@ with the farthest of its 3x3 coarse neighbours instead, so the far side of a tru
 survives. At intermediate levels removed and empty pixels take the upsampled coarse depth,
 so foreground depth propagates into holes before the next, finer test.
 
+Known trade-off (as in the original): within about one coarse pixel (2^levels pixels) of a true
+depth edge, e.g. beside a doorway, background leaking through the wall next to it is kept,
+because it is indistinguishable from the far side of the edge at that scale. A slope allowance
+keeps slanted surfaces (floors seen at grazing angles) that a plain ratio test would erode.
+
 ``fill_depth`` then closes the remaining holes with push-pull interpolation, and the caller
 gets a ``measured`` mask: localization back-projects only measured depth.
 """

@@ -7,6 +7,7 @@ The cloud stays on the device as float32 xyz + uint8 rgba (16 bytes per point).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from services.geometry.camera import Camera
@@ -21,9 +22,9 @@ class DeviceCloud:
 
     def __init__(self, xyz, rgb, origin, device: str | torch.device):
         self.device = torch.device(device)
-        self.xyz = torch.as_tensor(xyz, dtype=torch.float32).to(self.device)
+        self.xyz = torch.tensor(np.asarray(xyz, dtype=np.float32)).to(self.device)  # copies (scans may be read-only memmaps)
         rgba = torch.zeros((len(xyz), 4), dtype=torch.uint8)
-        rgba[:, :3] = torch.as_tensor(rgb)
+        rgba[:, :3] = torch.tensor(np.asarray(rgb))
         self.rgba = rgba.to(self.device)
         self.origin = origin
 
@@ -40,8 +41,8 @@ def splat_torch(cloud: DeviceCloud, T_wc: Pose, camera: Camera, cfg: SplatConfig
     """Returns (rgb (H,W,3) float32 0..255, depth (H,W) float32 with 0 for empty, count (H,W) int32) on the cloud's device."""
     dev = cloud.device
     T_cw = Pose(T_wc.R, T_wc.t - cloud.origin).inverse()
-    R = torch.as_tensor(T_cw.R, dtype=torch.float32, device=dev)
-    t = torch.as_tensor(T_cw.t, dtype=torch.float32, device=dev)
+    R = torch.tensor(T_cw.R, dtype=torch.float32, device=dev)
+    t = torch.tensor(T_cw.t, dtype=torch.float32, device=dev)
     W, H = camera.width, camera.height
     k1, k2, p1, p2, k3 = camera.distortion
     r2max = _r2max(camera)
