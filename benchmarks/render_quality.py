@@ -53,14 +53,17 @@ def main() -> None:
     print("|---|---|---:|---:|---:|---:|")
     for frac in (1.0, 0.5, 0.2, 0.1):
         sc = scan if frac >= 1 else random_decimate(scan, frac, seed=0)
-        r = Renderer(sc)
-        for stage in ("splat", "filter", "full"):
+        r = Renderer(sc, RenderConfig(holefill_scale=1.0))
+        half = Renderer(sc, RenderConfig(holefill_scale=0.5))
+        for name, rr, stage in (("splat", r, "splat"), ("+filter", r, "filter"), ("+U-Net", r, "full"),
+                                ("+U-Net at half res.", half, "full")):
             m = np.array([[psnr(x.rgb, g), ssim(x.rgb, g), x.hole_fraction, leakage(x.depth, gd)]
-                          for x, (g, gd) in ((r.render(T, cam, stage), gt) for T, gt in zip(poses, gts))]).mean(0)
-            print(f"| {frac:.0%} | {stage} | {m[0]:.2f} | {m[1]:.4f} | {m[2]:.3f} | {m[3]:.4f} |", flush=True)
+                          for x, (g, gd) in ((rr.render(T, cam, stage), gt) for T, gt in zip(poses, gts))]).mean(0)
+            print(f"| {frac:.0%} | {name} | {m[0]:.2f} | {m[1]:.4f} | {m[2]:.3f} | {m[3]:.4f} |", flush=True)
         if args.figure and frac in (1.0, 0.2):
             k = len(poses) // 2
-            fig_rows.append(np.concatenate([gts[k][0]] + [r.render(poses[k], cam, s).rgb for s in ("splat", "filter", "full")], 1))
+            row = [gts[k][0]] + [r.render(poses[k], cam, s).rgb for s in ("splat", "filter")] + [half.render(poses[k], cam).rgb]
+            fig_rows.append(np.concatenate([x[::2, ::2] for x in row], 1))
     if args.figure:
         import cv2
 
@@ -74,10 +77,10 @@ def main() -> None:
 
         sc = random_decimate(scan, 0.2, seed=0)
         big = cam.scaled(640 / cam.width)
-        print("\n| weights | params | SSIM @20 % | U-Net ms 640x480 (CPU, %d thread) |" % args.threads)
+        print(f"\n| weights | params | SSIM @20 % (full res.) | U-Net ms 640x480 (CPU, {args.threads} thread) |")
         print("|---|---:|---:|---:|")
         for w in args.weights:
-            r = Renderer(sc, RenderConfig(weights=w))
+            r = Renderer(sc, RenderConfig(weights=w, holefill_scale=1.0))
             s = np.mean([ssim(r.render(T, cam).rgb, g) for T, (g, _) in zip(poses, gts)])
             x = r.render(poses[0], big, "filter")
             rgb = torch.from_numpy(x.rgb).permute(2, 0, 1)[None].float() / 255

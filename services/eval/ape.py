@@ -48,6 +48,9 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple
     U, d, Vt = np.linalg.svd(cov)
     if len(src) < 3 or d[1] <= 1e-12 * max(d[0], 1e-300):
         raise DegenerateAlignment(f"alignment is degenerate: {len(src)} positions, collinear or fewer than 3")
+    if d[1] < 1e-2 * d[0]:  # d ~ variances: the second axis spans < 10 % of the first
+        log.warning("alignment is poorly conditioned: the camera centres lie almost on a line, so the rotation "
+                    "about it is arbitrary (as in evo); trust the unaligned numbers")
     S = np.eye(3)
     if np.linalg.det(U) * np.linalg.det(Vt) < 0:
         S[2, 2] = -1.0

@@ -40,7 +40,7 @@ class RenderConfig:
     splat: SplatConfig = field(default_factory=SplatConfig)
     filter: FilterConfig = field(default_factory=FilterConfig)
     weights: str | None = None  # hole-filling weights; None = the shipped default
-    holefill_scale: float = 1.0  # run the U-Net at this fraction of the resolution (CPU speed knob)
+    holefill_scale: float | None = None  # U-Net at this fraction of the resolution; None: 1 on CUDA, 0.5 on the CPU
 
 
 @dataclass
@@ -86,6 +86,7 @@ class Renderer:
             self.cloud = prepare_cloud(scan)
         log.info("renderer: %d points prepared on %s in %.2f s", len(scan), self.device, time.perf_counter() - t0)
         self.net = load_holefill(cfg.weights, self.device) if holefill else None
+        self.holefill_scale = cfg.holefill_scale or (1.0 if self.device.type == "cuda" else 0.5)
 
     # ---- stages ----------------------------------------------------------
     def _splat(self, T_wc: Pose, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
@@ -129,7 +130,7 @@ class Renderer:
                       keep.cpu().numpy(), T_wc, camera, tm)
 
     def _holefill(self, rgb01: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
-        s = self.cfg.holefill_scale
+        s = self.holefill_scale
         if s >= 1.0:
             return self.net(rgb01, mask, depth)
         # the network at reduced resolution; measured pixels keep their full-resolution colour
