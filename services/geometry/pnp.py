@@ -1,0 +1,77 @@
+"""Camera pose from 2D-3D correspondences: PnP inside RANSAC with non-linear refinement (poselib).
+
+Keypoints are undistorted with the frame's own lens model first, so the solver sees an ideal
+pinhole camera with the same focal lengths and principal point (thresholds stay in pixels).
+Returns a camera-to-world ``Pose`` and quality figures; ``None`` when there is too little to solve.
+Chosen by measurement: see benchmarks/RESULTS.md (poselib vs OpenCV USAC).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose, quat_to_rotmat
+
+__all__ = ["PnpResult", "solve_pnp", "reprojection_errors"]
+
+
+@dataclass
+class PnpResult:
+    T_wc: Pose
+    inliers: np.ndarray  # (N,) bool
+    reproj_rmse_px: float  # over the inliers
+    iterations: int
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+
+def reprojection_errors(T_wc: Pose, camera: Camera, uv_undist: np.ndarray, X_w: np.ndarray) -> np.ndarray:
+    """Pixel distances between undistorted keypoints and the projections (pinhole, same K) of world points."""
+    Xc = T_wc.inverse().transform(X_w)
+    z = np.maximum(Xc[:, 2], 1e-9)
+    u = camera.fx * Xc[:, 0] / z + camera.cx
+    v = camera.fy * Xc[:, 1] / z + camera.cy
+    err = np.hypot(u - uv_undist[:, 0], v - uv_undist[:, 1])
+    return np.where(Xc[:, 2] > 0, err, np.inf)
+
+
+def undistort_pixels(camera: Camera, uv: np.ndarray) -> np.ndarray:
+    xy = camera.undistort_points(uv)
+    return np.column_stack([camera.fx * xy[:, 0] + camera.cx, camera.fy * xy[:, 1] + camera.cy])
+
+
+def solve_pnp(uv: np.ndarray, X_w: np.ndarray, camera: Camera, max_error_px: float = 2.0, min_points: int = 6,
+              max_iterations: int = 2000, initial: Pose | None = None) -> PnpResult | None:
+    """RANSAC-PnP (P3P minimal solver, local optimisation, final Cauchy-loss refinement on inliers)."""
+    import poselib
+
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    X_w = np.asarray(X_w, np.float64).reshape(-1, 3)
+    if len(uv) < max(min_points, 4):
+        return None
+    uvu = undistort_pixels(camera, uv) if camera.is_distorted else uv
+    cam = {"model": "PINHOLE", "width": camera.width, "height": camera.height,
+           "params": [camera.fx, camera.fy, camera.cx, camera.cy]}
+    ransac = {"max_reproj_error": float(max_error_px), "max_iterations": int(max_iterations), "success_prob": 0.9999}
+    bundle = {"loss_type": "CAUCHY", "loss_scale": float(max_error_px) * 0.5, "max_iterations": 50}
+    kw = {}
+    if initial is not None:
+        T_cw = initial.inverse()
+        q = T_cw.quat_xyzw()
+        init = poselib.CameraPose()
+        init.q = [q[3], q[0], q[1], q[2]]
+        init.t = T_cw.t
+        kw["initial_pose"] = init
+    pose, info = poselib.estimate_absolute_pose(uvu, X_w, cam, ransac, bundle, **kw)
+    inl = np.asarray(info.get("inliers", []), bool)
+    if inl.sum() < min_points:
+        return None
+    R_cw = quat_to_rotmat([pose.q[1], pose.q[2], pose.q[3], pose.q[0]])  # poselib stores (w, x, y, z)
+    T_wc = Pose(R_cw, np.asarray(pose.t)).inverse()
+    err = reprojection_errors(T_wc, camera, uvu, X_w)
+    return PnpResult(T_wc, inl, float(np.sqrt(np.mean(err[inl] ** 2))), int(info.get("iterations", 0)))
