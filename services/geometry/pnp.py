@@ -24,10 +24,42 @@ class PnpResult:
     inliers: np.ndarray  # (N,) bool
     reproj_rmse_px: float  # over the inliers
     iterations: int
+    cov: np.ndarray | None = None  # (6, 6) covariance of a right perturbation of T_wc: (translation m, rotation rad), camera axes
 
     @property
     def n_inliers(self) -> int:
         return int(self.inliers.sum())
+
+    @property
+    def sigma_t_m(self) -> float:
+        """1-sigma uncertainty of the camera centre (metres, largest axis)."""
+        return float(np.sqrt(np.linalg.eigvalsh(self.cov[:3, :3]).max())) if self.cov is not None else float("inf")
+
+    @property
+    def sigma_r_deg(self) -> float:
+        """1-sigma uncertainty of the orientation (degrees, largest axis)."""
+        return float(np.degrees(np.sqrt(np.linalg.eigvalsh(self.cov[3:, 3:]).max()))) if self.cov is not None else float("inf")
+
+
+def pose_covariance(T_wc: Pose, camera: Camera, X_w: np.ndarray, sigma_px: float) -> np.ndarray | None:
+    """First-order covariance of the pose from its inlier geometry: sigma^2 (J^T J)^-1.
+
+    Parametrisation: T_wc' = T_wc exp(delta), delta = (rho, phi) in camera axes, so rho is the motion of the
+    camera centre. Few, distant or clustered points give a large covariance even at a small reprojection error.
+    """
+    Xc = T_wc.inverse().transform(X_w)
+    X, Y, Z = Xc[:, 0], Xc[:, 1], np.maximum(Xc[:, 2], 1e-6)
+    du = np.stack([camera.fx / Z, np.zeros_like(Z), -camera.fx * X / Z ** 2], 1)  # d(u)/d(Xc)
+    dv = np.stack([np.zeros_like(Z), camera.fy / Z, -camera.fy * Y / Z ** 2], 1)
+    # d(Xc)/d(delta) = [-I, [Xc]x]
+    def rows(d):
+        rot = np.cross(Xc, d)  # d . ([Xc]x phi) = (Xc x d) . phi ... sign: d^T [Xc]x = -(Xc x d)^T
+        return np.concatenate([-d, -rot], 1)
+    J = np.concatenate([rows(du), rows(dv)], 0)
+    H = J.T @ J
+    if np.linalg.cond(H) > 1e12:
+        return None
+    return sigma_px ** 2 * np.linalg.inv(H)
 
 
 def reprojection_errors(T_wc: Pose, camera: Camera, uv_undist: np.ndarray, X_w: np.ndarray) -> np.ndarray:
@@ -74,4 +106,6 @@ def solve_pnp(uv: np.ndarray, X_w: np.ndarray, camera: Camera, max_error_px: flo
     R_cw = quat_to_rotmat([pose.q[1], pose.q[2], pose.q[3], pose.q[0]])  # poselib stores (w, x, y, z)
     T_wc = Pose(R_cw, np.asarray(pose.t)).inverse()
     err = reprojection_errors(T_wc, camera, uvu, X_w)
-    return PnpResult(T_wc, inl, float(np.sqrt(np.mean(err[inl] ** 2))), int(info.get("iterations", 0)))
+    rmse = float(np.sqrt(np.mean(err[inl] ** 2)))
+    cov = pose_covariance(T_wc, camera, X_w[inl], max(rmse, 0.3))
+    return PnpResult(T_wc, inl, rmse, int(info.get("iterations", 0)), cov)

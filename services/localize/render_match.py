@@ -43,6 +43,8 @@ class Status(str, Enum):
 class RMConfig:
     min_inliers: int = 40  # gate: fewer inliers -> LOST
     max_rmse_px: float = 1.5  # gate: inlier reprojection RMSE
+    max_sigma_m: float = 0.02  # gate: predicted 1-sigma camera-centre uncertainty from the inlier geometry
+    max_sigma_deg: float = 0.3  # gate: predicted 1-sigma orientation uncertainty
     ransac_px: float = 2.0  # RANSAC inlier threshold
     match_cos: float = 0.82  # mutual-NN cosine threshold (XFeat's default)
     rerender_m: float = 0.15  # re-render when the pose is this far from the keyframe ...
@@ -70,6 +72,8 @@ class FrameResult:
     rmse_px: float = float("nan")
     rerendered: bool = False
     timings: dict[str, float] = field(default_factory=dict)  # ms
+    sigma_m: float = float("nan")  # predicted 1-sigma camera-centre uncertainty
+    sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
 
 
 class RenderMatchTracker:
@@ -108,7 +112,8 @@ class RenderMatchTracker:
         return r
 
     def _good(self, r: PnpResult | None) -> bool:
-        return r is not None and r.n_inliers >= self.cfg.min_inliers and r.reproj_rmse_px <= self.cfg.max_rmse_px
+        return (r is not None and r.n_inliers >= self.cfg.min_inliers and r.reproj_rmse_px <= self.cfg.max_rmse_px
+                and r.sigma_t_m <= self.cfg.max_sigma_m and r.sigma_r_deg <= self.cfg.max_sigma_deg)
 
     def _far(self, T: Pose, kf: Keyframe) -> bool:
         dt, dr = T.distance_to(kf.T_wc)
@@ -171,4 +176,4 @@ class RenderMatchTracker:
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
                                float("nan") if r is None else r.reproj_rmse_px, rerendered, tm)
         self.T_last = r.T_wc
-        return FrameResult(status, r.T_wc, r.n_inliers, r.reproj_rmse_px, rerendered, tm)
+        return FrameResult(status, r.T_wc, r.n_inliers, r.reproj_rmse_px, rerendered, tm, r.sigma_t_m, r.sigma_r_deg)
