@@ -58,6 +58,16 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def parse_pose(text: str, option: str = "--pose"):
+    """A camera-to-world pose from the command line: 'tx ty tz qx qy qz qw' (commas allowed)."""
+    from services.geometry.se3 import Pose
+
+    try:
+        return Pose.from_tum([float(x) for x in text.replace(",", " ").split()])
+    except ValueError as e:
+        raise CliError(f"{option}: {e} (expected 'tx ty tz qx qy qz qw')") from None
+
+
 def emit_summary(summary: dict) -> None:
     """The last line of every job's stdout: one JSON object, machine-readable."""
     print(json.dumps(summary, sort_keys=True, default=float), flush=True)

@@ -54,27 +54,17 @@ def register(sub) -> None:
     t.set_defaults(func=run_train)
 
 
-def _parse_pose(text: str):
-    from services.cli import CliError
-    from services.geometry.se3 import Pose
-
-    try:
-        return Pose.from_tum([float(x) for x in text.replace(",", " ").split()])
-    except ValueError as e:
-        raise CliError(f"--pose: {e}") from None
-
-
 def run_render(args) -> int:
     import cv2
     import numpy as np
 
-    from services.cli import emit_summary
+    from services.cli import emit_summary, parse_pose
     from services.geometry.camera import Camera
     from services.io.atomic import atomic_write, atomic_write_bytes
     from services.io.scans import load_scan
     from services.render.renderer import Renderer
 
-    T_wc = _parse_pose(args.pose)
+    T_wc = parse_pose(args.pose)
     cam = Camera.load(args.camera)
     scan = load_scan(args.scan)
     r = Renderer(scan, device=args.device, holefill=args.stage == "full").render(T_wc, cam, args.stage)

@@ -83,17 +83,12 @@ def run_view(args) -> int:
     import cv2
     import numpy as np
 
-    from services.cli import CliError, emit_summary
+    from services.cli import emit_summary, parse_pose
     from services.geometry.camera import Camera
-    from services.geometry.se3 import Pose
     from services.io.atomic import atomic_write, atomic_write_bytes
     from services.sim.site import SimSite
 
-    try:
-        vals = [float(x) for x in args.pose.replace(",", " ").split()]
-        T_wc = Pose.from_tum(vals)
-    except ValueError as e:
-        raise CliError(f"--pose: {e}") from None
+    T_wc = parse_pose(args.pose)
     cam = Camera.load(args.camera)
     site = SimSite(args.site)
     rgb, depth = site.render(T_wc, cam, args.lighting)
