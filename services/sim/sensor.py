@@ -85,10 +85,3 @@ def develop(radiance: np.ndarray, gain: float, model: SensorModel, rng: np.rando
     x = radiance * (gain * vig)[..., None] * np.asarray(model.white_balance, np.float32)
     x = x + rng.normal(0, 1, x.shape).astype(np.float32) * np.sqrt(model.shot_noise ** 2 * np.clip(x, 0, None) + model.read_noise ** 2)
     return (linear_to_srgb(x) * 255.0 + 0.5).astype(np.uint8)
-
-
-def jpeg_roundtrip(rgb: np.ndarray, quality: int) -> bytes:
-    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise RuntimeError("JPEG encoding failed")
-    return buf.tobytes()
