@@ -23,6 +23,8 @@ COMMANDS = [
     "services.eval.cli",
     "services.render.cli",
     "services.localize.cli",
+    "services.server.cli",
+    "services.client.cli",
 ]
 
 EPILOG = """\

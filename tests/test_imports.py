@@ -4,7 +4,10 @@ import subprocess
 import sys
 
 LIGHT = ["protocol", "services.geometry.se3", "services.geometry.camera", "services.io.sequence",
-         "services.io.trajectory", "services.io.atomic", "services.cli"]
+         "services.io.trajectory", "services.io.atomic", "services.cli",
+         "protocol.messages", "protocol.codec", "protocol.keys", "services.zconfig", "services.io.bundle",
+         "services.client", "services.client.client", "services.client.fallback", "services.client.stream",
+         "services.client.cli"]
 
 
 def test_light_modules_import_without_torch():
@@ -15,5 +18,5 @@ def test_light_modules_import_without_torch():
 
 def test_cli_help_is_fast_and_lists_commands():
     out = subprocess.run([sys.executable, "-m", "services.cli", "--help"], check=True, capture_output=True, text=True).stdout
-    for cmd in ("demo", "sim", "sim-view", "scan", "eval"):
+    for cmd in ("demo", "sim", "sim-view", "scan", "eval", "router", "serve", "stream"):
         assert cmd in out

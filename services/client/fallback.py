@@ -1,0 +1,85 @@
+"""On-device fallback: the light P&L localizer behind a small interface (no torch).
+
+The client needs three things from a local localizer: ``seed(T_wc)`` with each server pose (so
+it is warm when needed), ``process(image, camera)`` for a frame the server did not localize, and
+``reset()``. :func:`load_local` wraps :class:`services.localize.pnl.PnlLocalizer` (issue 5); any
+object with ``process(image, camera, prior) -> result`` (``.status``, ``.T_wc``, ``.inliers``) and
+optionally ``seed``/``reset`` fits :class:`LocalFallback`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose
+
+__all__ = ["LocalFallback", "LocalResult", "load_local"]
+
+log = logging.getLogger("cristal.client")
+
+
+@dataclass
+class LocalResult:
+    status: str  # "tracking" | "relocalized" | "lost" | "unavailable" | "error"
+    T_wc: Pose | None
+    inliers: int = 0
+    ms: float = 0.0
+
+
+class LocalFallback:
+    """Keeps a local localizer warm with server poses; localizes the frames the server did not."""
+
+    def __init__(self, localizer):
+        self.loc = localizer
+        self.T_seed: Pose | None = None
+        self.seeded_fresh = False
+        self.errors = 0
+
+    def seed(self, T_wc: Pose) -> None:
+        """A trusted pose (from the server) for the current frame."""
+        self.T_seed = T_wc
+        self.seeded_fresh = True
+        if hasattr(self.loc, "seed"):
+            try:
+                self.loc.seed(T_wc)
+            except Exception as e:  # noqa: BLE001 - the fallback must never break the stream
+                self.errors += 1
+                log.warning("local localizer rejected a seed: %s", e)
+
+    def reset(self) -> None:
+        self.T_seed = None
+        if hasattr(self.loc, "reset"):
+            self.loc.reset()
+
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None) -> LocalResult:
+        t0 = time.perf_counter()
+        if prior is None and self.seeded_fresh:
+            prior = self.T_seed  # the last server pose: one frame old at most while handing over
+        self.seeded_fresh = False
+        try:
+            r = self.loc.process(image, camera, prior)
+        except Exception as e:  # noqa: BLE001
+            self.errors += 1
+            log.warning("local localizer failed on a frame: %s: %s", type(e).__name__, e)
+            return LocalResult("error", None, 0, 1e3 * (time.perf_counter() - t0))
+        status = str(getattr(r.status, "value", r.status))
+        T = r.T_wc if status in ("tracking", "relocalized") else None
+        if T is not None:
+            self.T_seed = T
+        return LocalResult(status, T, int(getattr(r, "inliers", 0) or 0), 1e3 * (time.perf_counter() - t0))
+
+
+def load_local(map_dir: str | Path) -> LocalFallback | None:
+    """The P&L localizer for ``map_dir`` behind :class:`LocalFallback`; None (with a warning) if unavailable."""
+    try:
+        from services.localize.pnl import PnlConfig, PnlLocalizer
+    except ImportError as e:
+        log.warning("the local P&L localizer is not available (%s): frames the server misses get no pose", e)
+        return None
+    return LocalFallback(PnlLocalizer.load(Path(map_dir), PnlConfig()))

@@ -1,0 +1,151 @@
+"""Stream a sequence (folder, video, camera) through the service with on-device fallback (no torch).
+
+Per frame: send it to the server with a deadline. A pose in time → use it (source ``server``)
+and seed the local localizer with it. No live server, no reply before the deadline, or a
+``lost`` reply → the local P&L localizer's pose is used **for that frame** (source ``local``).
+The next frame tries the server again, so the client hands back as soon as a server answers.
+
+Outputs: the TUM trajectory (frames with a pose from either source) and a side file
+``<traj>.sources.txt``: ``stamp source status server rtt_ms`` per frame (``-`` where none).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from services.client.client import LocalizationClient, reply_pose
+from services.client.fallback import LocalFallback
+from services.geometry.se3 import Pose
+from services.io.trajectory import Trajectory, write_tum
+
+__all__ = ["StreamStats", "stream_sequence", "sources_path"]
+
+log = logging.getLogger("cristal.client")
+
+
+def sources_path(traj_path: str | Path) -> Path:
+    p = Path(traj_path)
+    return p.with_name(p.stem + ".sources.txt")
+
+
+@dataclass
+class StreamStats:
+    frames: int = 0
+    server: int = 0
+    local: int = 0
+    none: int = 0
+    missed: int = 0  # no reply before the deadline / no live server
+    lost: int = 0  # server replied lost
+    dropped: int = 0
+    rejected: int = 0
+    switches: int = 0
+    rtt_ms: list[float] = field(default_factory=list)
+    server_ms: list[float] = field(default_factory=list)  # the server's own arrival-to-reply time
+    wall_s: float = 0.0
+    rows: list[tuple] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        rtt = np.array(self.rtt_ms) if self.rtt_ms else np.array([np.nan])
+        srv = np.array(self.server_ms) if self.server_ms else np.array([np.nan])
+        return {"frames": self.frames, "server": self.server, "local": self.local, "no_pose": self.none,
+                "missed": self.missed, "lost": self.lost, "dropped": self.dropped, "rejected": self.rejected,
+                "switches": self.switches, "fps": round(self.frames / self.wall_s, 2) if self.wall_s else 0.0,
+                "rtt_p50_ms": round(float(np.nanpercentile(rtt, 50)), 2), "rtt_p99_ms": round(float(np.nanpercentile(rtt, 99)), 2),
+                "overhead_p50_ms": round(float(np.nanpercentile(rtt - srv, 50)), 2) if len(rtt) == len(srv) else None}
+
+
+def _frame_bytes(seq, i: int, image: np.ndarray):
+    """The file's own bytes for a folder sequence (no re-encoding), else a JPEG of the frame."""
+    from protocol.messages import ImageEncoding
+    from services.client.client import encode_image
+
+    files = getattr(seq, "files", None)
+    if files is not None and i < len(files):
+        suf = Path(files[i]).suffix.lower()
+        if suf in (".jpg", ".jpeg"):
+            return Path(files[i]).read_bytes(), ImageEncoding.JPEG
+        if suf == ".png":
+            return Path(files[i]).read_bytes(), ImageEncoding.PNG
+    return encode_image(image)
+
+
+def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallback | None, out: str | Path | None = None,
+                    frames: int | None = None, fps: float = 0.0, deadline_ms: float | None = None,
+                    on_frame=None) -> tuple[Trajectory, StreamStats]:
+    """Stream ``seq`` and write the trajectory + sources; ``fps`` > 0 paces frames at that rate."""
+    from services.log import progress
+
+    traj = Trajectory()
+    st = StreamStats()
+    n = len(seq) if frames is None else min(len(seq), frames)
+    t_start = time.perf_counter()
+    period = 1.0 / fps if fps and fps > 0 else 0.0
+    for i, frame in enumerate(progress(seq, desc="streaming", total=n, unit="frame")):
+        if i >= n:
+            break
+        if period:
+            wait = t_start + i * period - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
+        cam = seq.camera
+        T: Pose | None = None
+        source, status, server, rtt = "-", "none", "-", float("nan")
+        rep = None
+        if client is not None:
+            data, enc = _frame_bytes(seq, i, frame.image)
+            try:
+                stamp_f = float(frame.stamp)
+            except ValueError:
+                stamp_f = float(i)
+            t0 = time.perf_counter()
+            rep = client.localize(data, cam, stamp=stamp_f, stamp_text=frame.stamp, encoding=enc, deadline_ms=deadline_ms)
+            rtt = 1e3 * (time.perf_counter() - t0)
+            if rep is None:
+                st.missed += 1
+                status = "missed"
+            else:
+                status, server = rep.status.value, rep.server or "-"
+                if rep.status.value == "lost":
+                    st.lost += 1
+                elif rep.status.value == "dropped":
+                    st.dropped += 1
+                elif rep.status.value == "rejected":
+                    st.rejected += 1
+                    log.warning("frame %s rejected: %s (%s)", frame.stamp, rep.reason, rep.error)
+                T = reply_pose(rep)
+                if T is not None:
+                    st.rtt_ms.append(rtt)
+                    st.server_ms.append(float(rep.timings.get("total_ms", np.nan)))
+        if T is not None:
+            source = "server"
+            st.server += 1
+            if fallback is not None:
+                fallback.seed(T)
+        elif fallback is not None:
+            lr = fallback.process(frame.image, cam)
+            if lr.T_wc is not None:
+                T, source = lr.T_wc, "local"
+                st.local += 1
+                status = f"{status}/{lr.status}"
+        if T is None:
+            st.none += 1
+        else:
+            traj.append(frame.stamp, T)
+        st.frames += 1
+        st.rows.append((frame.stamp, source, status, server, rtt))
+        if on_frame is not None:
+            on_frame(i, frame, T, source, rep)
+    st.wall_s = time.perf_counter() - t_start
+    st.switches = client.switches if client is not None else 0
+    if out is not None:
+        write_tum(out, traj)
+        from services.io.atomic import atomic_write_text
+
+        lines = ["# stamp source status server rtt_ms"] + [f"{s} {src} {stt} {srv} {r:.2f}" for s, src, stt, srv, r in st.rows]
+        atomic_write_text(sources_path(out), "\n".join(lines) + "\n")
+    return traj, st

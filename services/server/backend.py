@@ -1,0 +1,145 @@
+"""What a server runs per client: a localization backend and its per-client trackers.
+
+A backend holds the heavy shared state (scan, renderer, feature extractor, relocalization
+database) once; ``new_tracker()`` makes the cheap per-client state. Two backends:
+
+- ``rm``  — Render & Match (:mod:`services.localize.render_match`): the GPU server's job, also runs on a CPU.
+- ``pnl`` — the light Prebuild & Localize localizer on the server's CPU (no torch, no GPU), for
+  sites served without a GPU; it needs only the P&L map directory.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose
+
+__all__ = ["TrackResult", "RMBackend", "PnlBackend", "load_backend"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrackResult:
+    status: str  # "tracking" | "relocalized" | "lost"
+    T_wc: Pose | None
+    inliers: int = 0
+    rmse_px: float = float("nan")
+    sigma_m: float = float("nan")
+    sigma_deg: float = float("nan")
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _status(s) -> str:
+    return str(getattr(s, "value", s))
+
+
+class _RMTracker:
+    def __init__(self, backend: "RMBackend"):
+        from services.localize.render_match import RenderMatchTracker
+
+        self.t = RenderMatchTracker(backend.renderer, backend.extractor, backend.db, backend.cfg)
+
+    def reset(self) -> None:
+        self.t.reset()
+
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None) -> TrackResult:
+        if motion is not None and self.t.T_last is not None:
+            self.t.T_last = self.t.T_last @ motion  # the device's odometry predicts the next pose
+        r = self.t.process(image, camera, prior)
+        return TrackResult(_status(r.status), r.T_wc, int(r.inliers), float(r.rmse_px), float(r.sigma_m),
+                           float(r.sigma_deg), dict(r.timings))
+
+
+class RMBackend:
+    name = "rm"
+
+    def __init__(self, scan, renderer, extractor, db, cfg=None):
+        from services.localize.render_match import RMConfig
+
+        self.scan, self.renderer, self.extractor, self.db = scan, renderer, extractor, db
+        self.cfg = cfg or RMConfig()
+
+    @classmethod
+    def load(cls, scan_path: str | Path, db_path: str | Path, device: str = "auto", max_side: int | None = None) -> "RMBackend":
+        from services.features.xfeat import XFeatExtractor
+        from services.io.scans import load_scan
+        from services.relocalize.database import RelocDB
+        from services.render.renderer import Renderer
+
+        db = RelocDB.load(db_path)
+        scan = load_scan(scan_path)
+        renderer = Renderer(scan, device=device)
+        if max_side is None:
+            max_side = None if renderer.device.type == "cuda" else 480
+        ext = XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side)
+        return cls(scan, renderer, ext, db)
+
+    def new_tracker(self) -> _RMTracker:
+        return _RMTracker(self)
+
+    def site_meta(self) -> dict:
+        lo, hi = self.scan.bounds()
+        return {"origin": [float(x) for x in self.scan.origin], "bounds_min": [float(x) for x in lo],
+                "bounds_max": [float(x) for x in hi]}
+
+
+class _PnlTracker:
+    def __init__(self, backend: "PnlBackend"):
+        self.loc = backend.make()
+        self.T_last: Pose | None = None
+
+    def reset(self) -> None:
+        self.loc.reset()
+        self.T_last = None
+
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None) -> TrackResult:
+        if prior is None and motion is not None and self.T_last is not None:
+            prior = self.T_last @ motion
+        r = self.loc.process(image, camera, prior)
+        self.T_last = r.T_wc
+        return TrackResult(_status(r.status), r.T_wc, int(getattr(r, "inliers", 0)), float(getattr(r, "rmse_px", np.nan)),
+                           timings=dict(getattr(r, "timings", {}) or {}))
+
+
+class PnlBackend:
+    """The P&L localizer per client (each client gets its own localizer over one shared, loaded map)."""
+
+    name = "pnl"
+
+    def __init__(self, map_dir: str | Path):
+        from services.localize.pnl import PnlConfig, PnlLocalizer  # issue 5
+
+        self.map_dir = Path(map_dir)
+        self._cls, self._cfg = PnlLocalizer, PnlConfig()
+        self._proto = PnlLocalizer.load(self.map_dir, self._cfg)
+
+    def make(self):
+        import copy
+
+        loc = copy.copy(self._proto)  # shares the (read-only) map, own tracking state
+        loc.reset()
+        return loc
+
+    def new_tracker(self) -> _PnlTracker:
+        return _PnlTracker(self)
+
+    def site_meta(self) -> dict:
+        return {}
+
+
+def load_backend(kind: str, scan: str | None, db: str | None, map_dir: str | None, device: str = "auto"):
+    if kind == "rm":
+        if not scan or not db:
+            raise ValueError("the rm backend needs a scan and --db")
+        return RMBackend.load(scan, db, device=device)
+    if kind == "pnl":
+        if not map_dir:
+            raise ValueError("the pnl backend needs --map")
+        return PnlBackend(map_dir)
+    raise ValueError(f"unknown backend {kind!r} (rm or pnl)")

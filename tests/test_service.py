@@ -1,0 +1,250 @@
+"""The localization service over real Zenoh sessions on loopback, with Render & Match on a small site.
+
+Request/reply, publication, site info, health, metrics, map bundle download, latest-frame-wins,
+and malformed input (a hypothesis fuzz against the live server)."""
+
+import math
+import threading
+import time
+import urllib.request
+
+import msgpack
+import numpy as np
+import pytest
+from _zenoh import config, endpoint, free_port, wait_until
+
+from protocol import PROTOCOL_VERSION, keys
+from protocol.codec import decode, encode
+from protocol.messages import ErrorCode, FrameRequest, ImageEncoding, Intrinsics, PoseReply, Status
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def rm_backend(small_site, tmp_path_factory):
+    import torch
+
+    from services.features.xfeat import XFeatExtractor
+    from services.io.scans import load_scan
+    from services.relocalize.database import DBConfig, build_database
+    from services.relocalize.roi import RoiConfig, sample_positions
+    from services.render.renderer import Renderer
+    from services.server.backend import RMBackend
+
+    torch.set_num_threads(1)
+    out, _, _ = small_site
+    scan = load_scan(out / "scan.ply")
+    renderer = Renderer(scan)
+    ext = XFeatExtractor(device="cpu", top_k=1024)
+    db = build_database(renderer, sample_positions(scan, RoiConfig(spacing=1.5)), ext, DBConfig(face_size=192, top_k=512))
+    return RMBackend(scan, renderer, ext, db)
+
+
+@pytest.fixture(scope="module")
+def map_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pnl")
+    (d / "map.msg").write_bytes(np.random.default_rng(1).integers(0, 255, 1_300_000, dtype=np.uint8).tobytes())
+    (d / "config.yaml").write_text("Camera:\n  name: test\n")
+    return d
+
+
+@pytest.fixture(scope="module")
+def service(rm_backend, map_dir):
+    from services.client.client import LocalizationClient
+    from services.server.service import LocalizationServer, ServerConfig
+
+    port, mport = free_port(), free_port()
+    cfg = ServerConfig(site="lab", map_id="office", server_id="w0", metrics_port=mport, idle_s=30)
+    srv = LocalizationServer(rm_backend, cfg, config(listen=[endpoint(port)]), bundle_dir=map_dir).start()
+    cl = LocalizationClient(config(connect=[endpoint(port)]), client_id="dev-1", site="lab", map_id="office",
+                            deadline_ms=5000)
+    try:
+        assert cl.wait_for_server(10)
+        yield srv, cl, port, mport
+    finally:
+        cl.close()
+        srv.close()
+
+
+def test_request_reply_and_publication(service, small_site):
+    from services.client.client import LocalizationClient
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    got = []
+    sub_sess = __import__("zenoh").open(config(connect=[endpoint(port)]))
+    try:
+        sub = sub_sess.declare_subscriber(keys.poses("lab"), lambda s: got.append(decode(s.payload.to_bytes(), PoseReply)))
+        time.sleep(0.3)
+        replies = []
+        for i in range(4):
+            f = seq.read(i)  # the file's own JPEG bytes, as `cristal stream` sends them
+            rep = cl.localize(seq.files[i].read_bytes(), seq.camera, stamp=float(f.stamp), stamp_text=f.stamp)
+            replies.append(rep)
+        assert replies[0].status is Status.RELOCALIZED  # the first frame has no prior
+        assert all(r.status.has_pose for r in replies) and [r.seq for r in replies] == [1, 2, 3, 4]
+        for i, r in enumerate(replies):
+            dt, dr = seq.groundtruth.poses[i].distance_to(__import__("services.client", fromlist=["x"]).reply_pose(r))
+            assert dt < 0.15 and dr < 2.0, (i, dt, dr)  # service test: convention errors would be metres
+            assert r.server == "w0" and r.map == "office" and r.inliers >= 40 and r.stamp_text == seq.stamps[i]
+            assert r.timings["total_ms"] > 0 and "features_ms" in r.timings and "queue_ms" in r.timings
+        assert wait_until(lambda: len(got) == 4, 5), got
+        assert [g.seq for g in got] == [1, 2, 3, 4] and got[0].client == "dev-1"
+        sub.undeclare()
+        # gray8 raw frames and a resolution change between frames (intrinsics travel with each frame)
+        g = np.ascontiguousarray(seq.read(4).image.mean(axis=2).astype(np.uint8))
+        rep = cl.localize(g.tobytes(), seq.camera, encoding=ImageEncoding.GRAY8)
+        assert rep.status.has_pose, rep
+        half = seq.camera.scaled(0.5) if hasattr(seq.camera, "scaled") else None
+        small = __import__("cv2").resize(seq.read(5).image, (half.width, half.height))
+        rep = cl.localize(small, half)
+        assert rep.status in (Status.TRACKING, Status.RELOCALIZED, Status.LOST)
+        # a second client gets its own state: it relocalizes, it does not inherit dev-1's track
+        with LocalizationClient(config(connect=[endpoint(port)]), client_id="dev-2", site="lab", map_id="office",
+                                deadline_ms=5000) as c2:
+            assert c2.wait_for_server(5)
+            assert c2.localize(seq.files[6].read_bytes(), seq.camera).status is Status.RELOCALIZED
+        # garbage pixels: lost, not a guess
+        noise = np.random.default_rng(0).integers(0, 255, seq.read(0).image.shape, dtype=np.uint8)
+        assert cl.localize(noise, seq.camera).status is Status.LOST
+    finally:
+        sub_sess.close()
+
+
+def test_info_health_metrics_and_bundle(service, map_dir, tmp_path):
+    srv, cl, port, mport = service
+    info = cl.site_info()
+    assert info.site == "lab" and info.map == "office" and info.protocol == PROTOCOL_VERSION and info.backend == "rm"
+    assert info.bundle.chunks == 3 and len(info.bounds_min) == 3
+    h = cl.health("w0")
+    assert h.ok and h.server == "w0" and h.clients >= 1
+    d = cl.download_bundle(tmp_path / "cache")
+    assert (d / "map.msg").read_bytes() == (map_dir / "map.msg").read_bytes()
+    assert (d / "config.yaml").read_text() == (map_dir / "config.yaml").read_text()
+    assert cl.download_bundle(tmp_path / "cache") == d  # cached, verified by checksum
+    text = urllib.request.urlopen(f"http://127.0.0.1:{mport}/metrics", timeout=5).read().decode()
+    assert 'cristal_frames_total{map="office",server="w0",site="lab",status=' in text
+    assert "cristal_stage_seconds_bucket" in text and "cristal_clients" in text
+
+
+def _req(client="dev-1", seq=1, **kw):
+    d = dict(client=client, seq=seq, image=b"", encoding=ImageEncoding.JPEG,
+             intrinsics=Intrinsics(width=200, height=150, fx=150, fy=150, cx=99.5, cy=74.5))
+    d.update(kw)
+    return FrameRequest(**d)
+
+
+def test_bad_input_gets_reasoned_rejections(service, small_site):
+    import cv2
+
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    jpg = cv2.imencode(".jpg", seq.read(0).image)[1].tobytes()
+    good = msgpack.unpackb(encode(_req(client="bad-1", image=jpg)))
+
+    def send(payload, client_key="bad-1"):
+        r = cl.request_raw(payload, "w0", 10.0, client_key=client_key)
+        assert r is not None, payload[:40]
+        return r
+
+    cases = [
+        (b"\x00\x01garbage", ErrorCode.MALFORMED),
+        (msgpack.packb(dict(good, v=PROTOCOL_VERSION + 1)), ErrorCode.VERSION),
+        (b"\x00" * (9 * 1024 * 1024), ErrorCode.TOO_LARGE),
+        (msgpack.packb(dict(good, image=b"\xff\xd8\xff not a jpeg")), ErrorCode.BAD_IMAGE),
+        (msgpack.packb(dict(good, intrinsics=dict(good["intrinsics"], fx=0.0))), ErrorCode.BAD_INTRINSICS),
+        (msgpack.packb(dict(good, intrinsics=dict(good["intrinsics"], fy=-150.0))), ErrorCode.BAD_INTRINSICS),
+        (msgpack.packb(dict(good, intrinsics=dict(good["intrinsics"], fx=math.nan))), ErrorCode.BAD_INTRINSICS),
+        (msgpack.packb(dict(good, intrinsics=dict(good["intrinsics"], cx=1e6))), ErrorCode.BAD_INTRINSICS),
+        (msgpack.packb(dict(good, intrinsics=dict(good["intrinsics"], width=400, height=300))), ErrorCode.BAD_IMAGE),
+        (msgpack.packb(dict(good, encoding="gray8", image=b"\x00" * 100)), ErrorCode.BAD_IMAGE),
+        (msgpack.packb(dict(good, map="warehouse")), ErrorCode.UNKNOWN_MAP),
+    ]
+    for k, (payload, code) in enumerate(cases):
+        d = msgpack.unpackb(payload) if payload[:1] not in (b"\x00",) else None
+        if isinstance(d, dict) and "seq" in d:  # each frame newer than the last (a reused seq is dropped as stale)
+            payload = msgpack.packb(dict(d, seq=10 + k))
+        r = send(payload)
+        assert r.status is Status.REJECTED and r.error is code and r.reason, (k, r)
+    # another client's id in the body of my key: refused
+    r = send(encode(_req(client="someone-else", seq=50, image=jpg)))
+    assert r.error is ErrorCode.CLIENT_MISMATCH
+    # a map this server does not serve, in the key
+    from services.client.client import LocalizationClient
+
+    with LocalizationClient(config(connect=[endpoint(port)]), client_id="x1", site="lab", map_id="warehouse",
+                            deadline_ms=3000) as other:
+        r = other.request_raw(encode(_req(client="x1", image=jpg)), "w0", 5.0)
+        assert r.status is Status.REJECTED and r.error is ErrorCode.UNKNOWN_MAP
+    # and the server still serves a good frame
+    assert cl.localize(seq.files[1].read_bytes(), seq.camera, reset=True, prior=seq.groundtruth.poses[1]).status.has_pose
+
+
+def test_latest_frame_wins(service, small_site):
+    """A client sending faster than the server serves gets stale frames dropped, never a backlog."""
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    import cv2
+
+    frames = [cv2.imencode(".jpg", seq.read(i).image)[1].tobytes() for i in range(8)]
+    results = {}
+
+    def fire(i):
+        req = _req(client="burst", seq=i + 1, image=frames[i], intrinsics=Intrinsics(**seq.camera.to_dict()))
+        results[i] = cl.request_raw(encode(req), "w0", 20.0, client_key="burst")
+
+    threads = []
+    for i in range(8):
+        t = threading.Thread(target=fire, args=(i,))
+        t.start()
+        threads.append(t)
+        time.sleep(0.005)
+    for t in threads:
+        t.join(30)
+    st = [results[i].status for i in range(8)]
+    assert all(r is not None for r in results.values())
+    assert st.count(Status.DROPPED) >= 4, st  # frames 2..7 arrive while 1 is being localized: only the latest survives
+    assert results[7].status is not Status.DROPPED  # the newest frame is always served
+    assert all(results[i].error is ErrorCode.SUPERSEDED for i in range(8) if st[i] is Status.DROPPED)
+    # deadline: a frame that could not start in time is dropped with that reason
+    req = _req(client="burst", seq=100, image=frames[0], intrinsics=Intrinsics(**seq.camera.to_dict()), deadline_ms=0.001)
+    r = cl.request_raw(encode(req), "w0", 5.0, client_key="burst")
+    assert r.status is Status.DROPPED and r.error is ErrorCode.DEADLINE
+
+
+def test_fuzz_malformed_messages_against_live_server(service, small_site):
+    """Thousands of malformed messages: each gets a rejection, then the server still localizes."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    srv, cl, port, _ = service
+    base = msgpack.unpackb(encode(_req(client="fz", image=b"\xff\xd8\xff\xe0")))
+    field_values = st.none() | st.booleans() | st.integers(-2 ** 63, 2 ** 63 - 1) | st.floats() | st.text(max_size=12) \
+        | st.binary(max_size=64) | st.lists(st.floats(), max_size=6)
+    intr = st.fixed_dictionaries({}, optional={k: field_values for k in ("width", "height", "fx", "fy", "cx", "cy", "distortion")})
+    mutated = st.builds(lambda upd, drop: msgpack.packb({k: v for k, v in {**base, **upd}.items() if k not in drop}),
+                        st.dictionaries(st.sampled_from(sorted(base) + ["intrinsics", "prior", "motion"]),
+                                        field_values | intr, max_size=4),
+                        st.sets(st.sampled_from(sorted(base)), max_size=2))
+    payloads = st.binary(max_size=200) | mutated
+    n = {"sent": 0}
+
+    @settings(max_examples=1500, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+    @given(payloads)
+    def run(p):
+        r = cl.request_raw(p, "w0", 5.0, client_key="fz")
+        n["sent"] += 1
+        assert r is not None and r.status in (Status.REJECTED, Status.DROPPED, Status.LOST), r
+
+    run()
+    assert n["sent"] >= 1000
+    from services.io.sequence import open_sequence
+
+    seq = open_sequence(small_site[0] / "seq_00")
+    assert cl.localize(seq.files[2].read_bytes(), seq.camera, reset=True, prior=seq.groundtruth.poses[2]).status.has_pose
+    assert srv.health().ok
