@@ -23,6 +23,7 @@ COMMANDS = [
     "services.eval.cli",
     "services.render.cli",
     "services.localize.cli",
+    "services.prebuild.cli",
     "services.server.cli",
     "services.client.cli",
 ]

@@ -1,0 +1,342 @@
+"""Prebuild: a stella_vslam map whose keyframes and landmarks come straight from the scan.
+
+Paper section "Prebuild & Localize". Positions on a uniform grid in the region of interest (the
+sampler the relocalization database uses); at each, views with the target camera's intrinsics
+(without its distortion, so keypoints are already undistorted) covering every yaw direction, two
+per direction (pitched up and down), rendered by the neural renderer. ORB with stella_vslam's
+settings on each view; keypoints with trustworthy measured depth (no depth edge in their 5x5
+neighbourhood) are back-projected to world points.
+
+Merging: every keyframe's candidate points are projected into each nearby keyframe (close position,
+overlapping view direction); a point matches a keypoint there when that keypoint lies within the
+3x3 pixel window around the projection, its own back-projected point agrees in depth, and the ORB
+descriptors are close (Hamming). Matches are joined with union-find; a cluster keeps at most one
+keypoint per keyframe (the one nearest the cluster's median point) and only observations that agree
+with the median in 3D. Clusters seen by fewer than ``min_observations`` keyframes are dropped, the
+rest become landmarks at the mean of their observations. Keyframes without landmarks are dropped;
+the spanning tree is the maximum spanning tree of the covisibility graph (shared landmarks), so
+parents are the most covisible keyframes, as SLAM would have linked them.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hamming
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose, look_at
+from services.log import progress
+from services.prebuild.stella_map import DEFAULT_ORB_NAME, MapCamera, MapKeyframe, OrbParams, StellaMap
+
+__all__ = ["BuildConfig", "view_poses", "build_map"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    yaw_overlap: float = 0.7  # yaw step = this fraction of the horizontal field of view
+    pitch_deg: float | None = None  # +- pitch of the two views per direction; None: a third of the vertical FOV
+    stage: str = "full"  # renderer stage: "full" (neural) or "splat" (ablation) or "filter"
+    orb: OrbSettings = field(default_factory=lambda: OrbSettings(max_keypoints=2000, distribution_cell=10))
+    max_depth_step: float = 0.03  # relative depth spread allowed in a keypoint's 5x5 neighbourhood
+    window_px: float = 1.5  # merge: keypoint within the 3x3 window around the projection
+    max_hamming: int = 64  # merge: descriptor distance
+    depth_tol: float = 0.03  # merge: relative depth agreement of the two back-projected points
+    merge_radius_m: float | None = None  # merge with keyframes whose positions are this close; None: 2.5 x spacing
+    min_observations: int = 2  # drop landmarks seen by fewer keyframes
+    cluster_tol_m: float = 0.02  # observations farther than this (+1 % of depth) from the cluster median are dropped
+    camera_name: str = "cristal camera"
+    fps: float = 30.0
+
+
+def view_poses(positions: np.ndarray, camera: Camera, cfg: BuildConfig = BuildConfig()) -> list[Pose]:
+    """Camera-to-world poses: at each position, every yaw direction, pitched up and down (world z up)."""
+    hfov = 2 * math.degrees(math.atan2(camera.width / 2, camera.fx))
+    vfov = 2 * math.degrees(math.atan2(camera.height / 2, camera.fy))
+    n_yaw = max(4, math.ceil(360.0 / (cfg.yaw_overlap * hfov)))
+    pitch = cfg.pitch_deg if cfg.pitch_deg is not None else vfov / 3
+    poses = []
+    for p in np.asarray(positions, float).reshape(-1, 3):
+        for i in range(n_yaw):
+            yaw = 2 * math.pi * i / n_yaw
+            for s in (1, -1):
+                pr = math.radians(s * pitch)
+                d = np.array([math.cos(yaw) * math.cos(pr), math.sin(yaw) * math.cos(pr), math.sin(pr)])
+                poses.append(look_at(p, p + d, (0, 0, 1)))
+    return poses
+
+
+@dataclass
+class _View:
+    T_wc: Pose
+    feats: OrbFeatures
+    X: np.ndarray  # (N, 3) world points
+    z: np.ndarray  # (N,) depth in this view
+    pos_index: int
+
+
+def _depth_ok(depth: np.ndarray, uv: np.ndarray, max_step: float) -> np.ndarray:
+    """Measured depth at and around each pixel (5x5) and no depth edge there."""
+    H, W = depth.shape
+    k = np.ones((5, 5), np.uint8)
+    dmax = cv2.dilate(depth, k)
+    dmin = cv2.erode(np.where(depth > 0, depth, np.float32(1e6)).astype(np.float32), k)
+    px = np.clip(np.round(uv).astype(int), 0, [W - 1, H - 1])
+    c = depth[px[:, 1], px[:, 0]]
+    lo, hi = dmin[px[:, 1], px[:, 0]], dmax[px[:, 1], px[:, 0]]
+    return (c > 0) & (lo < 1e5) & ((hi - lo) <= max_step * c)
+
+
+class _UnionFind:
+    def __init__(self, n: int):
+        self.p = np.arange(n)
+
+    def find_all(self) -> np.ndarray:
+        p = self.p
+        while True:
+            q = p[p]
+            if np.array_equal(q, p):
+                return p
+            p = q
+
+    def union_pairs(self, a: np.ndarray, b: np.ndarray) -> None:
+        for x, y in zip(a.tolist(), b.tolist()):
+            rx = x
+            while self.p[rx] != rx:
+                rx = self.p[rx]
+            ry = y
+            while self.p[ry] != ry:
+                ry = self.p[ry]
+            if rx != ry:
+                self.p[max(rx, ry)] = min(rx, ry)
+            # path compression on both chains
+            while self.p[x] != rx:
+                self.p[x], x = rx, self.p[x]
+            while self.p[y] != ry:
+                self.p[y], y = ry, self.p[y]
+
+
+def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera, cfg: BuildConfig) -> tuple[list[_View], dict]:
+    ext = OrbExtractor(cfg.orb)
+    views: list[_View] = []
+    tm = {"render_s": 0.0, "orb_s": 0.0}
+    for T, pi in progress(list(zip(poses, pos_index)), desc="rendering keyframes", unit="view"):
+        t0 = time.perf_counter()
+        r = renderer.render(T, cam, stage=cfg.stage)
+        t1 = time.perf_counter()
+        gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
+        f = ext.extract(gray)
+        ok = _depth_ok(r.depth, f.kpts, cfg.max_depth_step)
+        f = f.subset(np.flatnonzero(ok))
+        X, _ = r.backproject(f.kpts.astype(np.float64))
+        z = T.inverse().transform(X)[:, 2]
+        views.append(_View(T, f, X, z, pi))
+        tm["render_s"] += t1 - t0
+        tm["orb_s"] += time.perf_counter() - t1
+    return views, tm
+
+
+def _merge(views: list[_View], cam: Camera, positions: np.ndarray, cfg: BuildConfig, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Union-find of matching observations. Returns (view index, keypoint index, cluster label) per observation."""
+    starts = np.cumsum([0] + [len(v.feats) for v in views])
+    n_obs = int(starts[-1])
+    uf = _UnionFind(n_obs)
+    centers = np.array([v.T_wc.t for v in views])
+    axes = np.array([v.T_wc.R[:, 2] for v in views])
+    hfov = 2 * math.atan2(cam.width / 2, cam.fx)
+    cos_lim = math.cos(min(math.pi, hfov * 1.2))
+    W, H = cam.width, cam.height
+    all_X = np.concatenate([v.X for v in views]) if n_obs else np.zeros((0, 3))
+    all_desc = np.concatenate([v.feats.desc for v in views]) if n_obs else np.zeros((0, 32), np.uint8)
+    all_view = np.repeat(np.arange(len(views)), np.diff(starts))
+    offs = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    for b, vb in enumerate(progress(views, desc="merging landmarks", unit="kf")):
+        if len(vb.feats) == 0:
+            continue
+        near = np.flatnonzero((np.linalg.norm(centers - vb.T_wc.t, axis=1) <= radius) & (axes @ axes[b] >= cos_lim))
+        near = near[near > b]  # each pair once (matching is symmetric enough for union-find)
+        if len(near) == 0:
+            continue
+        idx = np.concatenate([np.arange(starts[a], starts[a + 1]) for a in near])
+        if len(idx) == 0:
+            continue
+        T_cw = vb.T_wc.inverse()
+        Xc = T_cw.transform(all_X[idx])
+        front = Xc[:, 2] > 0.05
+        idx, Xc = idx[front], Xc[front]
+        u = cam.fx * Xc[:, 0] / Xc[:, 2] + cam.cx
+        v = cam.fy * Xc[:, 1] / Xc[:, 2] + cam.cy
+        inside = (u > -1) & (u < W) & (v > -1) & (v < H)
+        idx, u, v, zc = idx[inside], u[inside], v[inside], Xc[inside, 2]
+        if len(idx) == 0:
+            continue
+        # keypoint index image of view b (pixel of each keypoint -> its index)
+        grid = -np.ones((H + 2, W + 2), np.int64)
+        kp = np.round(vb.feats.kpts).astype(int)
+        grid[kp[:, 1] + 1, kp[:, 0] + 1] = np.arange(len(kp))
+        ui, vi = np.round(u).astype(int), np.round(v).astype(int)
+        cand = grid[np.clip(vi[:, None] + offs[None, :, 1] + 1, 0, H + 1), np.clip(ui[:, None] + offs[None, :, 0] + 1, 0, W + 1)]
+        valid = cand >= 0
+        cj = np.where(valid, cand, 0)
+        du = vb.feats.kpts[cj, 0] - u[:, None]
+        dv = vb.feats.kpts[cj, 1] - v[:, None]
+        valid &= (np.abs(du) <= cfg.window_px) & (np.abs(dv) <= cfg.window_px)
+        valid &= np.abs(vb.z[cj] - zc[:, None]) <= cfg.depth_tol * zc[:, None]
+        hd = hamming(all_desc[idx][:, None, :], vb.feats.desc[cj])
+        hd = np.where(valid, hd, 1 << 20)
+        best = np.argmin(hd, axis=1)
+        bd = hd[np.arange(len(idx)), best]
+        ok = bd <= cfg.max_hamming
+        if not ok.any():
+            continue
+        a_obs = idx[ok]
+        b_obs = starts[b] + cj[np.arange(len(idx)), best][ok]
+        uf.union_pairs(a_obs, b_obs)
+    labels = uf.find_all()
+    kp_index = np.arange(n_obs) - starts[all_view]
+    return all_view, kp_index, labels
+
+
+def _spanning_tree(kf_ids: list[int], obs_kf: np.ndarray, obs_lm: np.ndarray, centers: np.ndarray) -> dict[int, int]:
+    """Maximum spanning tree of the covisibility graph (Prim); components joined by the nearest keyframe."""
+    import heapq
+
+    n = len(kf_ids)
+    pos = {k: i for i, k in enumerate(kf_ids)}
+    # covisibility weights: pairs of keyframes observing the same landmark
+    order = np.lexsort((obs_kf, obs_lm))
+    lm_s, kf_s = obs_lm[order], obs_kf[order]
+    bounds = np.flatnonzero(np.r_[True, lm_s[1:] != lm_s[:-1], True])
+    w: dict[tuple[int, int], int] = {}
+    for s, e in zip(bounds[:-1], bounds[1:]):
+        ks = kf_s[s:e].tolist()
+        for i in range(len(ks)):
+            for j in range(i + 1, len(ks)):
+                key = (ks[i], ks[j]) if ks[i] < ks[j] else (ks[j], ks[i])
+                w[key] = w.get(key, 0) + 1
+    adj: dict[int, list[tuple[int, int]]] = {k: [] for k in kf_ids}
+    for (a, b), c in w.items():
+        adj[a].append((c, b))
+        adj[b].append((c, a))
+    parent = {kf_ids[0]: -1}
+    in_tree = np.zeros(n, bool)
+    in_tree[0] = True
+    heap = [(-c, kf_ids[0], b) for c, b in adj[kf_ids[0]]]
+    heapq.heapify(heap)
+    while len(parent) < n:
+        while heap:
+            negc, a, b = heapq.heappop(heap)
+            if b in parent:
+                continue
+            parent[b] = a
+            in_tree[pos[b]] = True
+            for c, nb in adj[b]:
+                if nb not in parent:
+                    heapq.heappush(heap, (-c, b, nb))
+        if len(parent) < n:  # another component: attach its keyframe nearest to the tree
+            out_i = np.flatnonzero(~in_tree)
+            tin = np.flatnonzero(in_tree)
+            d = np.linalg.norm(centers[out_i][:, None] - centers[tin][None], axis=2)
+            i, j = np.unravel_index(np.argmin(d), d.shape)
+            b, a = kf_ids[out_i[i]], kf_ids[tin[j]]
+            parent[b] = a
+            in_tree[pos[b]] = True
+            heap = [(-c, b, nb) for c, nb in adj[b] if nb not in parent]
+            heapq.heapify(heap)
+    return parent
+
+
+def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig = BuildConfig(), spacing: float = 1.0) -> tuple[StellaMap, dict]:
+    """Render, extract, merge and assemble the map. Returns (map, stats)."""
+    t_start = time.perf_counter()
+    cam = camera.undistorted()
+    poses: list[Pose] = []
+    pos_index: list[int] = []
+    for i, p in enumerate(np.asarray(positions, float).reshape(-1, 3)):
+        vp = view_poses(p[None], cam, cfg)
+        poses += vp
+        pos_index += [i] * len(vp)
+    log.info("prebuild: %d positions, %d views of %dx%d (stage %s)", len(positions), len(poses), cam.width, cam.height, cfg.stage)
+    views, tm = _render_views(renderer, poses, pos_index, cam, cfg)
+    t_merge = time.perf_counter()
+    radius = cfg.merge_radius_m if cfg.merge_radius_m is not None else 2.5 * spacing
+    obs_view, obs_kp, labels = _merge(views, cam, np.asarray(positions), cfg, radius)
+    all_X = np.concatenate([v.X for v in views]) if len(obs_view) else np.zeros((0, 3))
+    all_z = np.concatenate([v.z for v in views]) if len(obs_view) else np.zeros(0)
+    # clusters: median point, drop far observations, one observation per keyframe, >= min_observations keyframes
+    order = np.lexsort((obs_view, labels))
+    lab_s = labels[order]
+    bounds = np.flatnonzero(np.r_[True, lab_s[1:] != lab_s[:-1], True])
+    sizes = np.diff(bounds)
+    keep_obs: list[np.ndarray] = []
+    lm_pos: list[np.ndarray] = []
+    for s, e in zip(bounds[:-1][sizes >= cfg.min_observations], bounds[1:][sizes >= cfg.min_observations]):
+        o = order[s:e]
+        X = all_X[o]
+        med = np.median(X, axis=0)
+        dist = np.linalg.norm(X - med, axis=1)
+        o = o[dist <= cfg.cluster_tol_m + 0.01 * all_z[o]]
+        if len(o) < cfg.min_observations:
+            continue
+        # one keypoint per keyframe: the nearest to the median
+        dist = np.linalg.norm(all_X[o] - med, axis=1)
+        o = o[np.lexsort((dist, obs_view[o]))]
+        first = np.r_[True, obs_view[o][1:] != obs_view[o][:-1]]
+        o = o[first]
+        if len(o) < cfg.min_observations:
+            continue
+        keep_obs.append(o)
+        lm_pos.append(all_X[o].mean(axis=0))
+    # keyframes that observe at least one landmark; ids in view order
+    obs_lm = np.concatenate([np.full(len(o), i) for i, o in enumerate(keep_obs)]) if keep_obs else np.zeros(0, int)
+    obs_all = np.concatenate(keep_obs) if keep_obs else np.zeros(0, int)
+    used_views = np.unique(obs_view[obs_all])
+    kf_id_of_view = -np.ones(len(views), np.int64)
+    kf_id_of_view[used_views] = np.arange(len(used_views))
+    lm_of_obs = -np.ones(len(obs_view), np.int64)
+    lm_of_obs[obs_all] = obs_lm
+    starts = np.cumsum([0] + [len(v.feats) for v in views])
+    keyframes: dict[int, MapKeyframe] = {}
+    for vi in used_views.tolist():
+        v = views[vi]
+        lm = lm_of_obs[starts[vi]:starts[vi + 1]]
+        sel = np.flatnonzero(lm >= 0)  # keep only keypoints with a landmark: a lean map
+        f = v.feats.subset(sel)
+        kid = int(kf_id_of_view[vi])
+        keyframes[kid] = MapKeyframe(kid, v.T_wc, f.kpts, f.angles, f.octaves, f.desc, lm[sel].astype(np.int64),
+                                     cfg.camera_name, DEFAULT_ORB_NAME, ts=float(kid))
+    # landmarks: first and reference keyframe = the lowest keyframe id that observes it
+    first_kf = np.full(len(keep_obs), np.iinfo(np.int64).max, np.int64)
+    np.minimum.at(first_kf, obs_lm, kf_id_of_view[obs_view[obs_all]])
+    n_obs = np.bincount(obs_lm, minlength=len(keep_obs)).astype(np.int64)
+    kf_ids = sorted(keyframes)
+    if kf_ids:
+        parent = _spanning_tree(kf_ids, kf_id_of_view[obs_view[obs_all]], obs_lm, np.array([keyframes[k].T_wc.t for k in kf_ids]))
+        for k, p in parent.items():
+            keyframes[k].span_parent = int(p)
+            if p >= 0:
+                keyframes[p].span_children.append(int(k))
+    o = cfg.orb
+    m = StellaMap(
+        cameras={cfg.camera_name: MapCamera.from_camera(cfg.camera_name, camera, cfg.fps)},
+        orb_params={DEFAULT_ORB_NAME: OrbParams(DEFAULT_ORB_NAME, o.scale_factor, o.num_levels, o.ini_fast_threshold, o.min_fast_threshold)},
+        keyframes=keyframes,
+        lm_ids=np.arange(len(keep_obs), dtype=np.int64),
+        lm_pos=np.array(lm_pos, np.float64).reshape(-1, 3),
+        lm_first_kf=first_kf, lm_ref_kf=first_kf.copy(), lm_n_vis=n_obs, lm_n_fnd=n_obs.copy(),
+        keyframe_next_id=len(kf_ids), landmark_next_id=len(keep_obs), frame_next_id=len(kf_ids),
+    )
+    stats = {"positions": int(len(positions)), "views": len(views), "keyframes": m.n_keyframes, "landmarks": m.n_landmarks,
+             "observations": int(len(obs_all)), "candidates": int(len(obs_view)),
+             "render_s": round(tm["render_s"], 2), "orb_s": round(tm["orb_s"], 2),
+             "merge_s": round(time.perf_counter() - t_merge, 2), "build_s": round(time.perf_counter() - t_start, 2)}
+    log.info("prebuild: %d keyframes, %d landmarks (%d observations of %d candidates) in %.1f s", m.n_keyframes,
+             m.n_landmarks, stats["observations"], stats["candidates"], stats["build_s"])
+    return m, stats
