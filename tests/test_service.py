@@ -21,23 +21,13 @@ pytestmark = pytest.mark.timeout(300)
 
 
 @pytest.fixture(scope="module")
-def rm_backend(small_site, tmp_path_factory):
+def rm_backend(small_site, small_site_db):
     import torch
 
-    from services.features.xfeat import XFeatExtractor
-    from services.io.scans import load_scan
-    from services.relocalize.database import DBConfig, build_database
-    from services.relocalize.roi import RoiConfig, sample_positions
-    from services.render.renderer import Renderer
     from services.server.backend import RMBackend
 
     torch.set_num_threads(1)
-    out, _, _ = small_site
-    scan = load_scan(out / "scan.ply")
-    renderer = Renderer(scan)
-    ext = XFeatExtractor(device="cpu", top_k=1024)
-    db = build_database(renderer, sample_positions(scan, RoiConfig(spacing=1.5)), ext, DBConfig(face_size=192, top_k=512))
-    return RMBackend(scan, renderer, ext, db)
+    return RMBackend.load(small_site[0] / "scan.ply", small_site_db, device="cpu")
 
 
 @pytest.fixture(scope="module")

@@ -126,7 +126,7 @@ class LocalizationClient:
 
     def pick_server(self) -> str | None:
         with self._lock:
-            if self.server in self.servers:
+            if self.server in self.servers and self.avoid.get(self.server, 0) <= time.monotonic():
                 return self.server
             now = time.monotonic()
             live = [s for s in self.servers if self.avoid.get(s, 0) <= now] or sorted(self.servers)
@@ -150,7 +150,7 @@ class LocalizationClient:
         encoding = encoding or ImageEncoding.JPEG
         deadline = float(deadline_ms or self.deadline_ms)
         t_end = time.monotonic() + deadline / 1e3
-        for _attempt in range(2):  # a second try only when a worker turned us away (overloaded)
+        for _attempt in range(3):  # another try only when a worker turned us away or vanished
             server = self.pick_server()
             if server is None:
                 return None
@@ -169,7 +169,16 @@ class LocalizationClient:
                                reset=reset, map=self.map_id, deadline_ms=left_ms)
             rep = self.request_raw(encode(req), server, left_ms / 1e3)
             if rep is None:
-                return None
+                # No reply. If the deadline is not spent, nobody answered at all: the worker is gone (its
+                # liveliness token may take a moment to vanish). Try another live worker in this same frame.
+                with self._lock:
+                    others = [s for s in self.servers if s != server and self.avoid.get(s, 0) <= time.monotonic()]
+                    if not others or t_end - time.monotonic() < 0.005:
+                        return None
+                    self.avoid[server] = time.monotonic() + 5.0
+                    self.server = None
+                log.info("server %s did not answer: trying another worker", server)
+                continue
             if rep.status is Status.REJECTED and rep.error is ErrorCode.OVERLOADED:
                 with self._lock:
                     self.avoid[server] = time.monotonic() + 10.0
