@@ -158,3 +158,27 @@ def test_killed_server_falls_back_within_a_deadline_and_hands_back(small_site, s
     lines = sources_path(out).read_text().splitlines()
     assert lines[0].startswith("#") and len(lines) == len(s) + 1 and lines[6].split()[1] == "local"
     assert len(read_tum(out)) == len(s)
+
+
+def test_serve_and_stream_commands(small_site, small_site_db, tmp_path):
+    """`cristal serve` listening itself (no router) and `cristal stream` writing the trajectory and the sources."""
+    from _zenoh import summary
+
+    from services.io.trajectory import read_tum
+
+    port = free_port()
+    p = cristal("serve", small_site[0] / "scan.ply", "--db", small_site_db, "--listen", endpoint(port), "--server-id", "solo",
+                "--device", "cpu")
+    try:
+        out = tmp_path / "t.txt"
+        s = cristal("stream", small_site[0] / "seq_00", "--out", out, "--connect", endpoint(port), "--frames", "5",
+                    "--deadline", "3000", "--wait", "60")
+        o, e = s.communicate(timeout=120)
+        assert s.returncode == 0, e
+        sm = summary(o)
+        assert sm["frames"] == 5 and sm["server"] >= 4 and sm["poses"] == len(read_tum(out))
+        rows = [line.split() for line in (tmp_path / "t.sources.txt").read_text().splitlines()[1:]]
+        assert len(rows) == 5 and rows[0][1] == "server" and rows[0][3] == "solo"
+    finally:
+        o, e = stop(p)
+    assert summary(o)["frames"] >= 5
