@@ -7,7 +7,9 @@ LIGHT = ["protocol", "services.geometry.se3", "services.geometry.camera", "servi
          "services.io.trajectory", "services.io.atomic", "services.cli",
          "protocol.messages", "protocol.codec", "protocol.keys", "services.zconfig", "services.io.bundle",
          "services.client", "services.client.client", "services.client.fallback", "services.client.stream",
-         "services.client.cli"]
+         "services.client.cli",
+         "services.localize.pnl", "services.localize.pnl_cli", "services.localize.status", "services.prebuild.stella_map",
+         "services.features.orb"]
 
 
 def test_light_modules_import_without_torch():

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["OrbSettings", "OrbFeatures", "OrbExtractor", "desc_to_u32", "u32_to_desc", "hamming"]
+__all__ = ["OrbSettings", "OrbFeatures", "OrbExtractor", "desc_to_u32", "u32_to_desc", "hamming", "level_centres"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,18 @@ def u32_to_desc(u32) -> np.ndarray:
     if a.size and (a.min() < 0 or a.max() > 0xFFFFFFFF):
         raise ValueError("descriptor words must be uint32")
     return np.ascontiguousarray(a.astype("<u4")).view(np.uint8).reshape(-1, 32)
+
+
+def level_centres(kpts: np.ndarray, octaves: np.ndarray, scale_factor: float) -> np.ndarray:
+    """Level-0 pixel centres of keypoints (float64).
+
+    stella_vslam and OpenCV report a level-L keypoint at ``x_L * s`` (``s = scale_factor ** L``), which is
+    ``0.5 (s - 1)`` pixels up-left of where that level pixel's centre lies in the full image
+    (``(x_L + 0.5) s - 0.5``); up to 1.3 px at level 7. The map stores keypoints as stella computes
+    them; geometry (back-projection, pose optimisation) uses the centres.
+    """
+    s = np.asarray(scale_factor, np.float64) ** np.asarray(octaves, np.float64)
+    return np.asarray(kpts, np.float64) + (0.5 * (s - 1.0))[:, None]
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ LOC_EPILOG = """\
 examples:
   cristal localize site/scan.ply site/seq_00 --method rm --db site/reloc.npz --out traj.txt
   cristal localize scan.ply walk.mp4 --method rm --db db.npz --out traj.txt --frames 200
+  cristal localize site/map site/seq_00 --method pnl --map site/map --out traj.txt     Prebuild & Localize (CPU, no torch)
 
 Writes a TUM trajectory (camera-to-world in the scan frame; frames without a pose are absent),
 prints frames localized, relocalizations and FPS per stage, and, when the sequence has a
@@ -46,8 +47,10 @@ def register(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scan")
     p.add_argument("sequence", help="sequence folder (rgb.txt + camera.json) or video file")
-    p.add_argument("--method", choices=["rm"], default="rm", help="rm: Render & Match (needs --db)")
-    p.add_argument("--db", required=True, help="relocalization database from 'cristal build-db'")
+    p.add_argument("--method", choices=["rm", "pnl"], default="rm",
+                   help="rm: Render & Match (needs --db); pnl: Prebuild & Localize against a prebuilt map (needs --map)")
+    p.add_argument("--db", help="relocalization database from 'cristal build-db' (--method rm)")
+    p.add_argument("--map", help="map folder from 'cristal prebuild' (--method pnl); the scan argument may then be the map too")
     p.add_argument("--out", required=True, help="output TUM trajectory")
     p.add_argument("--frames", type=int, help="only the first N frames")
     p.add_argument("--device", default="auto")
@@ -90,6 +93,14 @@ def run_build_db(args) -> int:
 
 
 def run_localize(args) -> int:
+    from services.cli import CliError
+
+    if args.method == "pnl":
+        from services.localize.pnl_cli import run_localize_pnl
+
+        return run_localize_pnl(args)
+    if not args.db:
+        raise CliError("--method rm needs --db (a relocalization database from 'cristal build-db')")
     import time
 
     import numpy as np

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hamming
+from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hamming, level_centres
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose, look_at
 from services.log import progress
@@ -44,7 +44,8 @@ class BuildConfig:
     yaw_overlap: float = 0.7  # yaw step = this fraction of the horizontal field of view
     pitch_deg: float | None = None  # +- pitch of the two views per direction; None: a third of the vertical FOV
     stage: str = "full"  # renderer stage: "full" (neural) or "splat" (ablation) or "filter"
-    orb: OrbSettings = field(default_factory=lambda: OrbSettings(max_keypoints=2000, distribution_cell=10))
+    orb: OrbSettings = field(default_factory=lambda: OrbSettings(max_keypoints=2000))
+    distribution_cell: int | None = None  # px; None: 10 at 640 px width, scaled with the width
     max_depth_step: float = 0.03  # relative depth spread allowed in a keypoint's 5x5 neighbourhood
     window_px: float = 1.5  # merge: keypoint within the 3x3 window around the projection
     max_hamming: int = 64  # merge: descriptor distance
@@ -80,6 +81,7 @@ class _View:
     X: np.ndarray  # (N, 3) world points
     z: np.ndarray  # (N,) depth in this view
     pos_index: int
+    uvc: np.ndarray  # (N, 2) level-0 pixel centres of the keypoints
 
 
 def _depth_ok(depth: np.ndarray, uv: np.ndarray, max_step: float) -> np.ndarray:
@@ -124,7 +126,10 @@ class _UnionFind:
 
 
 def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera, cfg: BuildConfig) -> tuple[list[_View], dict]:
-    ext = OrbExtractor(cfg.orb)
+    from dataclasses import replace
+
+    cell = cfg.distribution_cell or max(3, round(10 * cam.width / 640))
+    ext = OrbExtractor(replace(cfg.orb, distribution_cell=cell))
     views: list[_View] = []
     tm = {"render_s": 0.0, "orb_s": 0.0}
     for T, pi in progress(list(zip(poses, pos_index)), desc="rendering keyframes", unit="view"):
@@ -135,9 +140,10 @@ def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera
         f = ext.extract(gray)
         ok = _depth_ok(r.depth, f.kpts, cfg.max_depth_step)
         f = f.subset(np.flatnonzero(ok))
-        X, _ = r.backproject(f.kpts.astype(np.float64))
+        uvc = level_centres(f.kpts, f.octaves, cfg.orb.scale_factor)
+        X, _ = r.backproject(uvc)
         z = T.inverse().transform(X)[:, 2]
-        views.append(_View(T, f, X, z, pi))
+        views.append(_View(T, f, X, z, pi, uvc))
         tm["render_s"] += t1 - t0
         tm["orb_s"] += time.perf_counter() - t1
     return views, tm
@@ -179,14 +185,14 @@ def _merge(views: list[_View], cam: Camera, positions: np.ndarray, cfg: BuildCon
             continue
         # keypoint index image of view b (pixel of each keypoint -> its index)
         grid = -np.ones((H + 2, W + 2), np.int64)
-        kp = np.round(vb.feats.kpts).astype(int)
+        kp = np.clip(np.round(vb.uvc).astype(int), -1, [W, H])
         grid[kp[:, 1] + 1, kp[:, 0] + 1] = np.arange(len(kp))
         ui, vi = np.round(u).astype(int), np.round(v).astype(int)
         cand = grid[np.clip(vi[:, None] + offs[None, :, 1] + 1, 0, H + 1), np.clip(ui[:, None] + offs[None, :, 0] + 1, 0, W + 1)]
         valid = cand >= 0
         cj = np.where(valid, cand, 0)
-        du = vb.feats.kpts[cj, 0] - u[:, None]
-        dv = vb.feats.kpts[cj, 1] - v[:, None]
+        du = vb.uvc[cj, 0] - u[:, None]
+        dv = vb.uvc[cj, 1] - v[:, None]
         valid &= (np.abs(du) <= cfg.window_px) & (np.abs(dv) <= cfg.window_px)
         valid &= np.abs(vb.z[cj] - zc[:, None]) <= cfg.depth_tol * zc[:, None]
         hd = hamming(all_desc[idx][:, None, :], vb.feats.desc[cj])
@@ -270,6 +276,7 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
     obs_view, obs_kp, labels = _merge(views, cam, np.asarray(positions), cfg, radius)
     all_X = np.concatenate([v.X for v in views]) if len(obs_view) else np.zeros((0, 3))
     all_z = np.concatenate([v.z for v in views]) if len(obs_view) else np.zeros(0)
+    all_oct = np.concatenate([v.feats.octaves for v in views]) if len(obs_view) else np.zeros(0, np.int32)
     # clusters: median point, drop far observations, one observation per keyframe, >= min_observations keyframes
     order = np.lexsort((obs_view, labels))
     lab_s = labels[order]
@@ -293,7 +300,8 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
         if len(o) < cfg.min_observations:
             continue
         keep_obs.append(o)
-        lm_pos.append(all_X[o].mean(axis=0))
+        oc = all_oct[o]
+        lm_pos.append(all_X[o[oc == oc.min()]].mean(axis=0))  # the finest pyramid level locates the corner best
     # keyframes that observe at least one landmark; ids in view order
     obs_lm = np.concatenate([np.full(len(o), i) for i, o in enumerate(keep_obs)]) if keep_obs else np.zeros(0, int)
     obs_all = np.concatenate(keep_obs) if keep_obs else np.zeros(0, int)

@@ -1,0 +1,494 @@
+"""Prebuild & Localize: the light on-device localizer against a prebuilt stella_vslam map.
+
+No torch, no numba, no scipy: numpy + OpenCV + msgpack, so a headset or robot client imports it.
+Public API (used by the Zenoh client's local fallback)::
+
+    from services.localize.pnl import PnlLocalizer, PnlConfig
+    loc = PnlLocalizer.load(map_dir, PnlConfig())
+    res = loc.process(image, camera, prior=None)   # res.status, res.T_wc, res.inliers, res.rmse_px, res.timings
+    loc.reset(); loc.seed(T_wc)
+
+Per frame: stella_vslam-style ORB on the frame; keypoints undistorted with the frame's own
+intrinsics. With a pose to start from (the previous pose moved by the constant-velocity model, a
+client prior, or a seed), the landmarks of nearby keyframes that the predicted camera can see
+(distance inside the landmark's scale range, viewing angle within 60 degrees of its mean) are
+projected; each looks for the best keypoint within a small window at a compatible pyramid level
+(Hamming distance, ratio test, orientation histogram), and a motion-only Gauss-Newton with Huber
+weights and chi-square outlier rounds optimises the pose. Done twice: a wide window from the
+prediction, then a narrow one from the first estimate. The pose passes a gate (inliers, inlier
+reprojection RMSE) or the frame is LOST and gives no pose.
+
+With no pose (first frame, after LOST) the frame relocalizes against the map itself: each keypoint's
+descriptor is matched against every landmark's representative descriptor (ratio test), the
+matches vote for the keyframes observing those landmarks, and PnP-RANSAC on the matches around the
+best-voted keyframes gives a coarse pose which the tracking step refines and gates. No external
+vocabulary is needed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hamming, level_centres
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose
+from services.localize.status import Status
+from services.prebuild.stella_map import StellaMap, read_map
+
+__all__ = ["PnlConfig", "PnlResult", "PnlLocalizer", "Status"]
+
+log = logging.getLogger(__name__)
+
+_CHI2_2DOF = 5.991
+
+
+@dataclass(frozen=True)
+class PnlConfig:
+    max_keypoints: int = 1000  # ORB keypoints per frame
+    distribution_cell: int | None = None  # px; None: 12 at 640 px width, scaled with the frame width
+    min_inliers: int = 30  # gate: fewer -> LOST
+    max_rmse_px: float = 1.5  # gate: inlier reprojection RMSE (pixels, each divided by its pyramid scale)
+    coarse_radius_px: float = 16.0  # window around the predicted projection (x scale^octave, capped by the grid)
+    fine_radius_px: float = 4.0  # window after the first pose estimate
+    max_hamming: int = 80
+    ratio: float = 0.9  # best / second best distance
+    local_radius_m: float = 4.0  # keyframes within this distance of the predicted camera give the local landmarks
+    reloc_ratio: float = 0.8
+    reloc_max_hamming: int = 64
+    reloc_keyframes: int = 4  # best-voted keyframes tried
+    reloc_ransac_px: float = 4.0
+    reloc_min_inliers: int = 15
+    use_velocity: bool = True
+    cell_px: int = 24  # keypoint grid for window search
+    cell_capacity: int = 12
+
+
+@dataclass
+class PnlResult:
+    status: Status
+    T_wc: Pose | None
+    inliers: int = 0
+    rmse_px: float = float("nan")
+    timings: dict[str, float] = field(default_factory=dict)  # ms
+
+
+class _MapIndex:
+    """Landmark arrays the localizer needs, derived once from the map (as stella_vslam derives them at load)."""
+
+    def __init__(self, m: StellaMap):
+        self.map = m
+        orb = next(iter(m.orb_params.values()))
+        self.scale_factor = float(orb.scale_factor)
+        self.num_levels = int(orb.num_levels)
+        row = {int(i): r for r, i in enumerate(m.lm_ids.tolist())}
+        self.pos = np.ascontiguousarray(m.lm_pos, np.float64)
+        M = len(self.pos)
+        kf_ids = sorted(m.keyframes)
+        self.kf_ids = np.array(kf_ids, np.int64)
+        self.kf_center = np.array([m.keyframes[k].T_wc.t for k in kf_ids]).reshape(-1, 3)
+        self.kf_axis = np.array([m.keyframes[k].T_wc.R[:, 2] for k in kf_ids]).reshape(-1, 3)
+        obs_lm, obs_kf, obs_desc, obs_ang, obs_oct = [], [], [], [], []
+        self.kf_lms: list[np.ndarray] = []
+        for ki, k in enumerate(kf_ids):
+            kf = m.keyframes[k]
+            sel = np.flatnonzero(kf.lm_ids >= 0)
+            rows = np.array([row.get(int(x), -1) for x in kf.lm_ids[sel].tolist()], np.int64)
+            ok = rows >= 0
+            sel, rows = sel[ok], rows[ok]
+            self.kf_lms.append(rows)
+            obs_lm.append(rows)
+            obs_kf.append(np.full(len(rows), ki, np.int64))
+            obs_desc.append(kf.desc[sel])
+            obs_ang.append(kf.angles[sel])
+            obs_oct.append(kf.octaves[sel])
+        cat = (lambda a, dt, shape=(0,): np.concatenate(a) if a else np.zeros(shape, dt))
+        obs_lm, obs_kf = cat(obs_lm, np.int64), cat(obs_kf, np.int64)
+        obs_desc = cat(obs_desc, np.uint8, (0, 32))
+        obs_ang, obs_oct = cat(obs_ang, np.float32), cat(obs_oct, np.int32)
+        self.obs_lm, self.obs_kf = obs_lm, obs_kf
+        # representative descriptor: the Hamming medoid of each landmark's observations (as stella does)
+        order = np.argsort(obs_lm, kind="stable")
+        lm_s = obs_lm[order]
+        start = np.searchsorted(lm_s, np.arange(M))
+        count = np.bincount(obs_lm, minlength=M)
+        rep = np.full(M, -1, np.int64)
+        for n in np.unique(count):
+            if n == 0:
+                continue
+            L = np.flatnonzero(count == n)
+            idx = order[start[L][:, None] + np.arange(n)[None, :]]  # (L, n) observation indices
+            if n <= 2:
+                rep[L] = idx[:, 0]
+                continue
+            d = obs_desc[idx]  # (L, n, 32)
+            dist = hamming(d[:, :, None, :], d[:, None, :, :]).sum(axis=2)
+            rep[L] = idx[np.arange(len(L)), np.argmin(dist, axis=1)]
+        has = rep >= 0
+        self.valid = has
+        rep = np.where(has, rep, 0)
+        self.desc = obs_desc[rep] if len(obs_desc) else np.zeros((M, 32), np.uint8)
+        self.angle = obs_ang[rep] if len(obs_ang) else np.zeros(M, np.float32)
+        # scale range and mean viewing direction (stella: from the reference keyframe's observation)
+        ref_kf_row = {int(k): i for i, k in enumerate(kf_ids)}
+        ref = np.array([ref_kf_row.get(int(k), -1) for k in m.lm_ref_kf.tolist()], np.int64)
+        ref_oct = np.zeros(M, np.int32)
+        # octave of the observation in the reference keyframe
+        is_ref = obs_kf == ref[obs_lm] if len(obs_lm) else np.zeros(0, bool)
+        ref_oct[obs_lm[is_ref]] = obs_oct[is_ref]
+        ref_center = self.kf_center[np.where(ref >= 0, ref, 0)] if len(kf_ids) else np.zeros((M, 3))
+        dist = np.linalg.norm(self.pos - ref_center, axis=1)
+        self.max_dist = dist * self.scale_factor ** ref_oct
+        self.min_dist = self.max_dist / self.scale_factor ** (self.num_levels - 1)
+        nrm = np.zeros((M, 3))
+        if len(obs_lm):
+            v = self.pos[obs_lm] - self.kf_center[obs_kf]
+            v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+            np.add.at(nrm, obs_lm, v)
+        self.normal = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-9)
+        self.log_sf = math.log(self.scale_factor)
+        self._bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self._reloc_rows = np.flatnonzero(self.valid)
+
+
+@dataclass
+class _Frame:
+    feats: OrbFeatures
+    uv: np.ndarray  # (N, 2) undistorted pixels (float64)
+    K: np.ndarray
+    width: int
+    height: int
+    grid: np.ndarray  # (n_cells, capacity) keypoint indices or -1
+    gw: int
+    gh: int
+    inv_sigma2: np.ndarray  # (N,) 1 / scale^(2 octave)
+
+
+class PnlLocalizer:
+    """Tracks a camera in a prebuilt map; see the module docstring."""
+
+    def __init__(self, stella_map: StellaMap, cfg: PnlConfig = PnlConfig()):
+        self.cfg = cfg
+        t0 = time.perf_counter()
+        self.idx = _MapIndex(stella_map)
+        orb = next(iter(stella_map.orb_params.values()))
+        self._orb = orb
+        self._extractors: dict[int, OrbExtractor] = {}
+        self._inv_s2 = 1.0 / (orb.scale_factor ** (2 * np.arange(orb.num_levels)))
+        self.T_last: Pose | None = None  # camera-to-world of the last localized frame
+        self._vel: Pose | None = None  # T_cw(t) @ T_wc(t-1): the last frame-to-frame motion
+        self._local_key: tuple | None = None
+        self._local_rows = np.zeros(0, np.int64)
+        self.relocalizations = 0
+        log.info("P&L localizer: %d keyframes, %d landmarks indexed in %.2f s", stella_map.n_keyframes,
+                 stella_map.n_landmarks, time.perf_counter() - t0)
+
+    @classmethod
+    def load(cls, map_dir: str | Path, cfg: PnlConfig = PnlConfig()) -> "PnlLocalizer":
+        return cls(read_map(map_dir), cfg)
+
+    # ---- state ----------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the pose: the next frame relocalizes."""
+        self.T_last = None
+        self._vel = None
+
+    def seed(self, T_wc: Pose) -> None:
+        """Start tracking from an external pose (e.g. a server answer); no velocity is assumed."""
+        self.T_last = T_wc
+        self._vel = None
+
+    # ---- frame preparation -------------------------------------------------------------
+    def _extractor(self, width: int) -> OrbExtractor:
+        ex = self._extractors.get(width)
+        if ex is None:
+            o, cfg = self._orb, self.cfg
+            cell = cfg.distribution_cell or max(3, round(12 * width / 640))
+            ex = OrbExtractor(OrbSettings(scale_factor=o.scale_factor, num_levels=o.num_levels, ini_fast_threshold=o.ini_fast_threshold,
+                                          min_fast_threshold=o.min_fast_threshold, max_keypoints=cfg.max_keypoints,
+                                          distribution_cell=cell))
+            self._extractors[width] = ex
+        return ex
+
+    def _frame(self, image: np.ndarray, camera: Camera) -> _Frame:
+        if image.shape[0] != camera.height or image.shape[1] != camera.width:
+            raise ValueError(f"image is {image.shape[1]}x{image.shape[0]} but the camera says {camera.width}x{camera.height}")
+        f = self._extractor(camera.width).extract(image)
+        pts = level_centres(f.kpts, f.octaves, self._orb.scale_factor)
+        K = camera.K
+        if camera.is_distorted and len(pts):
+            uv = cv2.undistortPoints(pts.reshape(-1, 1, 2), K, camera.dist, P=K).reshape(-1, 2)
+        else:
+            uv = pts
+        c, cap = self.cfg.cell_px, self.cfg.cell_capacity
+        gw, gh = camera.width // c + 2, camera.height // c + 2
+        # undistorted points may leave the image a little: shift by one cell
+        cx = np.clip((uv[:, 0] // c).astype(np.int64) + 1, 0, gw - 1)
+        cy = np.clip((uv[:, 1] // c).astype(np.int64) + 1, 0, gh - 1)
+        cell = cy * gw + cx
+        order = np.lexsort((-f.responses, cell))
+        cs = cell[order]
+        start = np.searchsorted(cs, cs, side="left")
+        rank = np.arange(len(cs)) - start
+        keep = rank < cap
+        grid = -np.ones((gw * gh, cap), np.int64)
+        grid[cs[keep], rank[keep]] = order[keep]
+        return _Frame(f, uv, K, camera.width, camera.height, grid, gw, gh, self._inv_s2[f.octaves])
+
+    # ---- local map -----------------------------------------------------------------------
+    def _local(self, T_wc: Pose) -> np.ndarray:
+        c = T_wc.t
+        key = self._local_key
+        if key is not None and np.linalg.norm(key[0] - c) < 0.25 and float(key[1] @ T_wc.R[:, 2]) > math.cos(math.radians(10)):
+            return self._local_rows
+        idx = self.idx
+        d = np.linalg.norm(idx.kf_center - c, axis=1)
+        near = np.flatnonzero((d < self.cfg.local_radius_m) & (idx.kf_axis @ T_wc.R[:, 2] > -0.2))
+        if len(near) == 0:
+            near = np.argsort(d)[:20]
+        rows = np.unique(np.concatenate([idx.kf_lms[i] for i in near])) if len(near) else np.zeros(0, np.int64)
+        self._local_key = (c.copy(), T_wc.R[:, 2].copy())
+        self._local_rows = rows
+        return rows
+
+    # ---- projection matching ----------------------------------------------------------------
+    def _match(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """Landmark rows and keypoint indices matched by projecting ``rows`` with world-to-camera (R, t)."""
+        idx, cfg = self.idx, self.cfg
+        P = idx.pos[rows]
+        Xc = P @ R.T + t
+        z = Xc[:, 2]
+        front = z > 0.05
+        zs = np.where(front, z, 1.0)
+        u = fr.K[0, 0] * Xc[:, 0] / zs + fr.K[0, 2]
+        v = fr.K[1, 1] * Xc[:, 1] / zs + fr.K[1, 2]
+        cam_c = -R.T @ t
+        PO = P - cam_c
+        dist = np.linalg.norm(PO, axis=1)
+        ok = front & (u >= -8) & (u < fr.width + 8) & (v >= -8) & (v < fr.height + 8)
+        ok &= (dist >= 0.7 * idx.min_dist[rows]) & (dist <= 1.3 * idx.max_dist[rows])
+        ok &= np.einsum("ij,ij->i", PO, idx.normal[rows]) >= 0.5 * dist
+        sel = np.flatnonzero(ok)
+        if len(sel) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        rows, u, v, dist = rows[sel], u[sel], v[sel], dist[sel]
+        pred_oct = np.clip(np.ceil(np.log(np.maximum(idx.max_dist[rows] / dist, 1e-9)) / idx.log_sf), 0, idx.num_levels - 1).astype(np.int64)
+        r = np.minimum(radius * idx.scale_factor ** pred_oct, cfg.cell_px)
+        c = cfg.cell_px
+        cx = np.clip((u // c).astype(np.int64) + 1, 1, fr.gw - 2)
+        cy = np.clip((v // c).astype(np.int64) + 1, 1, fr.gh - 2)
+        cells = (cy[:, None] + np.array([-1, -1, -1, 0, 0, 0, 1, 1, 1])) * fr.gw + cx[:, None] + np.array([-1, 0, 1] * 3)
+        cand = fr.grid[cells].reshape(len(rows), -1)  # (M, 9 * capacity)
+        li, ci = np.nonzero(cand >= 0)
+        kp = cand[li, ci]
+        du = fr.uv[kp, 0] - u[li]
+        dv = fr.uv[kp, 1] - v[li]
+        ko = fr.feats.octaves[kp]
+        m = (np.abs(du) <= r[li]) & (np.abs(dv) <= r[li]) & (ko >= pred_oct[li] - 1) & (ko <= pred_oct[li] + 1)
+        li, kp = li[m], kp[m]
+        if len(li) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        hd = hamming(idx.desc[rows[li]], fr.feats.desc[kp])
+        order = np.lexsort((hd, li))
+        li, kp, hd = li[order], kp[order], hd[order]
+        first = np.r_[True, li[1:] != li[:-1]]
+        fi = np.flatnonzero(first)
+        best_hd = hd[fi]
+        second = np.full(len(fi), 1 << 20)
+        has2 = (fi + 1 < len(li))
+        has2[has2] = ~first[fi[has2] + 1]
+        second[has2] = hd[fi[has2] + 1]
+        good = (best_hd <= cfg.max_hamming) & (best_hd < cfg.ratio * second)
+        fi = fi[good]
+        lm_i, kp_i, d_i = li[fi], kp[fi], hd[fi]
+        # one landmark per keypoint: the closest descriptor
+        o = np.lexsort((d_i, kp_i))
+        lm_i, kp_i, d_i = lm_i[o], kp_i[o], d_i[o]
+        u1 = np.r_[True, kp_i[1:] != kp_i[:-1]]
+        lm_i, kp_i = lm_i[u1], kp_i[u1]
+        # orientation consistency: the three strongest bins of the angle-difference histogram (as ORB-SLAM / stella)
+        if len(kp_i) >= 10:
+            da = (fr.feats.angles[kp_i] - idx.angle[rows[lm_i]]) % 360.0
+            b = (da * (30 / 360.0)).astype(np.int64) % 30
+            cnt = np.bincount(b, minlength=30)
+            top = np.argsort(-cnt)[:3]
+            keep = np.isin(b, top[cnt[top] >= 0.1 * cnt[top[0]]])
+            lm_i, kp_i = lm_i[keep], kp_i[keep]
+        return rows[lm_i], kp_i
+
+    # ---- pose optimisation ------------------------------------------------------------------
+    def _optimize(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, kp: np.ndarray):
+        """Motion-only Gauss-Newton, Huber weights, chi-square outlier rounds. Returns (R, t, inlier mask, rmse_px)."""
+        P = self.idx.pos[rows]
+        uv = fr.uv[kp]
+        w_oct = fr.inv_sigma2[kp]
+        fx, fy, cx, cy = fr.K[0, 0], fr.K[1, 1], fr.K[0, 2], fr.K[1, 2]
+        inl = np.ones(len(rows), bool)
+        huber = math.sqrt(_CHI2_2DOF)
+        for rnd, iters in enumerate((6, 4, 3, 3)):
+            for _ in range(iters):
+                Xc = P[inl] @ R.T + t
+                x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+                iz = 1.0 / np.maximum(z, 1e-6)
+                ex = fx * x * iz + cx - uv[inl, 0]
+                ey = fy * y * iz + cy - uv[inl, 1]
+                wo = w_oct[inl]
+                e2 = (ex * ex + ey * ey) * wo
+                e = np.sqrt(e2)
+                w = wo * np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
+                # d(u,v)/dXc
+                a = fx * iz
+                b = fy * iz
+                # J = dproj/dXc @ [-[Xc]x | I]  (left perturbation on T_cw)
+                Ju = np.stack([-a * x * y * iz, a * (z + x * x * iz), -a * y, a, np.zeros_like(a), -a * x * iz], 1)
+                Jv = np.stack([-b * (z + y * y * iz), b * x * y * iz, b * x, np.zeros_like(b), b, -b * y * iz], 1)
+                H = (Ju * w[:, None]).T @ Ju + (Jv * w[:, None]).T @ Jv
+                g = (Ju * w[:, None]).T @ ex + (Jv * w[:, None]).T @ ey
+                try:
+                    dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+                except np.linalg.LinAlgError:
+                    return R, t, np.zeros(len(rows), bool), float("inf")
+                dR = cv2.Rodrigues(dx[:3])[0]
+                R = dR @ R
+                t = dR @ t + dx[3:]
+                if np.abs(dx).max() < 1e-7:
+                    break
+            # classify all matches
+            Xc = P @ R.T + t
+            iz = 1.0 / np.maximum(Xc[:, 2], 1e-6)
+            ex = fx * Xc[:, 0] * iz + cx - uv[:, 0]
+            ey = fy * Xc[:, 1] * iz + cy - uv[:, 1]
+            e2 = (ex * ex + ey * ey) * w_oct
+            inl = (e2 <= _CHI2_2DOF) & (Xc[:, 2] > 0.05)
+            if inl.sum() < 6:
+                return R, t, inl, float("inf")
+        U, _, Vt = np.linalg.svd(R)
+        R = U @ Vt
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            return np.eye(3), np.zeros(3), np.zeros(len(rows), bool), float("inf")
+        # RMSE in level-0 pixels with each residual divided by its keypoint's pyramid scale (chi-square units)
+        px2 = e2[inl]
+        return R, t, inl, float(math.sqrt(px2.mean())) if len(px2) else float("inf")
+
+    def _track(self, fr: _Frame, T_wc_pred: Pose, coarse_radius: float, tm: dict) -> tuple[np.ndarray, np.ndarray, int, float] | None:
+        t0 = time.perf_counter()
+        rows = self._local(T_wc_pred)
+        T_cw = T_wc_pred.inverse()
+        R, t = T_cw.R.copy(), T_cw.t.copy()
+        lm, kp = self._match(fr, R, t, rows, coarse_radius)
+        t1 = time.perf_counter()
+        tm["match_ms"] = tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
+        if len(lm) < 10:
+            return None
+        R, t, inl, _ = self._optimize(fr, R, t, lm, kp)
+        t2 = time.perf_counter()
+        tm["pose_ms"] = tm.get("pose_ms", 0.0) + 1e3 * (t2 - t1)
+        if inl.sum() < 10:
+            return None
+        lm, kp = self._match(fr, R, t, rows, self.cfg.fine_radius_px)
+        t3 = time.perf_counter()
+        tm["match_ms"] += 1e3 * (t3 - t2)
+        if len(lm) < 10:
+            return None
+        R, t, inl, rmse = self._optimize(fr, R, t, lm, kp)
+        tm["pose_ms"] += 1e3 * (time.perf_counter() - t3)
+        return R, t, int(inl.sum()), rmse
+
+    def _good(self, r) -> bool:
+        return r is not None and r[2] >= self.cfg.min_inliers and r[3] <= self.cfg.max_rmse_px
+
+    # ---- relocalization ------------------------------------------------------------------------
+    def _relocalize(self, fr: _Frame, tm: dict):
+        t0 = time.perf_counter()
+        idx, cfg = self.idx, self.cfg
+        if len(fr.feats) < 10 or len(idx._reloc_rows) < 10:
+            return None
+        knn = idx._bf.knnMatch(fr.feats.desc, idx.desc[idx._reloc_rows], k=2)
+        q, trn = [], []
+        for mm in knn:
+            if len(mm) == 2 and mm[0].distance <= cfg.reloc_max_hamming and mm[0].distance < cfg.reloc_ratio * mm[1].distance:
+                q.append(mm[0].queryIdx)
+                trn.append(mm[0].trainIdx)
+        tm["reloc_match_ms"] = 1e3 * (time.perf_counter() - t0)
+        if len(q) < cfg.reloc_min_inliers:
+            return None
+        q = np.array(q)
+        lm = idx._reloc_rows[np.array(trn)]
+        # votes: keyframes observing the matched landmarks
+        obs = np.isin(idx.obs_lm, lm)
+        votes = np.bincount(idx.obs_kf[obs], minlength=len(idx.kf_ids))
+        best = None
+        tried_centers: list[np.ndarray] = []
+        for k in np.argsort(-votes)[: 3 * cfg.reloc_keyframes]:
+            if votes[k] < 5 or len(tried_centers) >= cfg.reloc_keyframes:
+                break
+            c = idx.kf_center[k]
+            if any(np.linalg.norm(c - tc) < 0.5 for tc in tried_centers):
+                continue
+            tried_centers.append(c)
+            near_kf = np.flatnonzero(np.linalg.norm(idx.kf_center - c, axis=1) < 2.0)
+            near_lm = np.unique(np.concatenate([idx.kf_lms[i] for i in near_kf]))
+            sel = np.isin(lm, near_lm)
+            if sel.sum() < cfg.reloc_min_inliers:
+                continue
+            obj = idx.pos[lm[sel]].astype(np.float64)
+            img = fr.uv[q[sel]].astype(np.float64)
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, fr.K, None, iterationsCount=300,
+                                                     reprojectionError=cfg.reloc_ransac_px, confidence=0.999,
+                                                     flags=cv2.SOLVEPNP_SQPNP)
+            n = 0 if (not ok or inl is None) else len(inl)
+            if n >= cfg.reloc_min_inliers and (best is None or n > best[0]):
+                best = (n, cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+        tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
+        if best is None:
+            return None
+        _, R, t = best
+        try:
+            T_wc = Pose(R, t).inverse()
+        except ValueError:
+            return None
+        self._local_key = None
+        return self._track(fr, T_wc, self.cfg.coarse_radius_px, tm)
+
+    # ---- the frame loop ---------------------------------------------------------------------------
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None) -> PnlResult:
+        """Localize one frame (grey or BGR uint8). ``prior``: a camera-to-world hint (odometry, server) for this frame."""
+        tm: dict[str, float] = {}
+        t_start = time.perf_counter()
+        fr = self._frame(image, camera)
+        tm["features_ms"] = 1e3 * (time.perf_counter() - t_start)
+        status = Status.TRACKING
+        r = None
+        if prior is not None:
+            r = self._track(fr, prior, self.cfg.coarse_radius_px, tm)
+        elif self.T_last is not None:
+            pred = self.T_last
+            if self.cfg.use_velocity and self._vel is not None:
+                pred = self.T_last @ self._vel  # T_wc(t) = T_wc(t-1) @ (T_c(t-2)c(t-1))
+            r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
+            if not self._good(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
+                r = self._track(fr, self.T_last, 2 * self.cfg.coarse_radius_px, tm)
+        if not self._good(r):
+            r = self._relocalize(fr, tm)
+            if self._good(r):
+                status = Status.RELOCALIZED
+                self.relocalizations += 1
+        tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
+        if not self._good(r):
+            self.T_last = None
+            self._vel = None
+            return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm)
+        R, t, n, rmse = r
+        T_wc = Pose(R.T, -R.T @ t)
+        if self.T_last is not None and status == Status.TRACKING:
+            self._vel = self.T_last.inverse() @ T_wc
+        else:
+            self._vel = None
+        self.T_last = T_wc
+        return PnlResult(status, T_wc, n, rmse, tm)
