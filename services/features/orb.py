@@ -24,6 +24,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import cv2
 import numpy as np
 
@@ -92,6 +94,48 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.bitwise_count(x).sum(axis=-1, dtype=np.int32)
 
 
+def _umax(half: int = 15) -> np.ndarray:
+    """stella_vslam's / OpenCV's circular patch extent per row for the intensity centroid."""
+    u = np.zeros(half + 1, np.int64)
+    vmax = int(math.floor(half * math.sqrt(2.0) / 2 + 1))
+    vmin = int(math.ceil(half * math.sqrt(2.0) / 2))
+    for v in range(vmax + 1):
+        u[v] = int(round(math.sqrt(half * half - v * v)))
+    v0 = 0
+    for v in range(half, vmin - 1, -1):
+        while u[v0] == u[v0 + 1]:
+            v0 += 1
+        u[v] = v0
+        v0 += 1
+    return u
+
+
+_UMAX = _umax()
+_PATCH = np.array([(du, dv) for dv in range(-15, 16) for du in range(-_UMAX[abs(dv)], _UMAX[abs(dv)] + 1)], np.int64)
+
+
+def stella_pyramid(gray: np.ndarray, num_levels: int = 8, scale_factor: float = 1.2) -> list[np.ndarray]:
+    """stella_vslam's image pyramid: level L = cv::resize(level L-1, round(size / s^L), INTER_LINEAR)."""
+    pyr = [gray]
+    for L in range(1, num_levels):
+        s = scale_factor ** L
+        pyr.append(cv2.resize(pyr[-1], (int(round(gray.shape[1] / s)), int(round(gray.shape[0] / s))),
+                              interpolation=cv2.INTER_LINEAR))
+    return pyr
+
+
+def ic_angles(level: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Intensity-centroid orientation (degrees, cv::fastAtan2) at level-image points, as stella_vslam's ic_angle."""
+    c = np.round(pts).astype(np.int64)  # cvRound
+    img = level.astype(np.int64)
+    x = c[:, 0, None] + _PATCH[None, :, 0]
+    y = c[:, 1, None] + _PATCH[None, :, 1]
+    vals = img[y, x]
+    m10 = (vals * _PATCH[None, :, 0]).sum(1)
+    m01 = (vals * _PATCH[None, :, 1]).sum(1)
+    return np.array([cv2.fastAtan2(float(b), float(a)) for a, b in zip(m10, m01)], np.float32)
+
+
 class OrbExtractor:
     """stella_vslam-style ORB on a grey (or BGR) uint8 image."""
 
@@ -116,6 +160,46 @@ class OrbExtractor:
         n = len(kps)
         arr = np.array([(k.pt[0], k.pt[1], k.angle, k.octave, k.response) for k in kps], dtype=np.float64).reshape(n, 5)
         return self._select(arr, desc)
+
+    def extract_stella(self, image: np.ndarray) -> OrbFeatures:
+        """As :meth:`extract`, then orientation and descriptor recomputed exactly as stella_vslam does.
+
+        The keypoints are OpenCV's; each level's angle is the intensity centroid on stella's
+        INTER_LINEAR pyramid and the descriptor OpenCV's rBRIEF (the pattern stella copies) on that
+        level image blurred 7x7, sigma 2. Level 0 is bit-identical to :meth:`extract`; higher levels
+        differ from OpenCV's pyramid by a few bits (``docs/PREBUILD.md``). Used for maps stella loads.
+        """
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        f = self.extract(gray)
+        if len(f) == 0:
+            return f
+        s = self.s
+        pyr = stella_pyramid(gray, s.num_levels, s.scale_factor)
+        if not hasattr(self, "_one"):
+            self._one = cv2.ORB_create(nfeatures=1, scaleFactor=s.scale_factor, nlevels=1, edgeThreshold=s.edge,
+                                       firstLevel=0, WTA_K=2, scoreType=cv2.ORB_FAST_SCORE, patchSize=31)
+        angles = f.angles.copy()
+        desc = f.desc.copy()
+        keep = np.ones(len(f), bool)
+        for L in range(s.num_levels):
+            sel = np.flatnonzero(f.octaves == L)
+            if len(sel) == 0:
+                continue
+            sc = s.scale_factor ** L
+            pts = f.kpts[sel].astype(np.float64) / sc
+            ang = ic_angles(pyr[L], pts) if L > 0 else f.angles[sel]
+            kps = [cv2.KeyPoint(float(p[0]), float(p[1]), 31.0, float(a), 0.0, 0) for p, a in zip(pts, ang)]
+            kps2, d = self._one.compute(pyr[L], kps)
+            if len(kps2) != len(kps):  # compute() dropped border keypoints: align by position
+                pos = {(k.pt[0], k.pt[1]): j for j, k in enumerate(kps2)}
+                j = np.array([pos.get((k.pt[0], k.pt[1]), -1) for k in kps])
+                keep[sel[j < 0]] = False
+                sel, ang, j = sel[j >= 0], ang[j >= 0], j[j >= 0]
+                d = d[j] if d is not None else np.zeros((0, 32), np.uint8)
+            angles[sel] = ang
+            desc[sel] = d
+        out = OrbFeatures(f.kpts, angles, f.octaves, f.responses, desc)
+        return out if keep.all() else out.subset(np.flatnonzero(keep))
 
     def _select(self, arr: np.ndarray, desc: np.ndarray) -> OrbFeatures:
         s = self.s

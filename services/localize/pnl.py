@@ -258,8 +258,8 @@ class PnlLocalizer:
         return rows
 
     # ---- projection matching ----------------------------------------------------------------
-    def _match(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-        """Landmark rows and keypoint indices matched by projecting ``rows`` with world-to-camera (R, t)."""
+    def _match(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Landmark rows and keypoint indices matched by projecting ``rows`` with world-to-camera (R, t); and the visible rows."""
         idx, cfg = self.idx, self.cfg
         P = idx.pos[rows]
         Xc = P @ R.T + t
@@ -276,8 +276,9 @@ class PnlLocalizer:
         ok &= np.einsum("ij,ij->i", PO, idx.normal[rows]) >= 0.5 * dist
         sel = np.flatnonzero(ok)
         if len(sel) == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), rows[sel]
         rows, u, v, dist = rows[sel], u[sel], v[sel], dist[sel]
+        visible = rows
         pred_oct = np.clip(np.ceil(np.log(np.maximum(idx.max_dist[rows] / dist, 1e-9)) / idx.log_sf), 0, idx.num_levels - 1).astype(np.int64)
         r = np.minimum(radius * idx.scale_factor ** pred_oct, cfg.cell_px)
         c = cfg.cell_px
@@ -293,7 +294,7 @@ class PnlLocalizer:
         m = (np.abs(du) <= r[li]) & (np.abs(dv) <= r[li]) & (ko >= pred_oct[li] - 1) & (ko <= pred_oct[li] + 1)
         li, kp = li[m], kp[m]
         if len(li) == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), visible
         hd = hamming(idx.desc[rows[li]], fr.feats.desc[kp])
         order = np.lexsort((hd, li))
         li, kp, hd = li[order], kp[order], hd[order]
@@ -320,10 +321,10 @@ class PnlLocalizer:
             top = np.argsort(-cnt)[:3]
             keep = np.isin(b, top[cnt[top] >= 0.1 * cnt[top[0]]])
             lm_i, kp_i = lm_i[keep], kp_i[keep]
-        return rows[lm_i], kp_i
+        return rows[lm_i], kp_i, visible
 
     # ---- pose optimisation ------------------------------------------------------------------
-    def _optimize(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, kp: np.ndarray):
+    def _optimize(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, kp: np.ndarray, rounds=(6, 4, 3, 3)):
         """Motion-only Gauss-Newton, Huber weights, chi-square outlier rounds. Returns (R, t, inlier mask, rmse_px)."""
         P = self.idx.pos[rows]
         uv = fr.uv[kp]
@@ -331,7 +332,7 @@ class PnlLocalizer:
         fx, fy, cx, cy = fr.K[0, 0], fr.K[1, 1], fr.K[0, 2], fr.K[1, 2]
         inl = np.ones(len(rows), bool)
         huber = math.sqrt(_CHI2_2DOF)
-        for rnd, iters in enumerate((6, 4, 3, 3)):
+        for rnd, iters in enumerate(rounds):
             for _ in range(iters):
                 Xc = P[inl] @ R.T + t
                 x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
@@ -381,17 +382,17 @@ class PnlLocalizer:
         rows = self._local(T_wc_pred)
         T_cw = T_wc_pred.inverse()
         R, t = T_cw.R.copy(), T_cw.t.copy()
-        lm, kp = self._match(fr, R, t, rows, coarse_radius)
+        lm, kp, visible = self._match(fr, R, t, rows, coarse_radius)
         t1 = time.perf_counter()
         tm["match_ms"] = tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
         if len(lm) < 10:
             return None
-        R, t, inl, _ = self._optimize(fr, R, t, lm, kp)
+        R, t, inl, _ = self._optimize(fr, R, t, lm, kp, rounds=(6, 4, 3))
         t2 = time.perf_counter()
         tm["pose_ms"] = tm.get("pose_ms", 0.0) + 1e3 * (t2 - t1)
         if inl.sum() < 10:
             return None
-        lm, kp = self._match(fr, R, t, rows, self.cfg.fine_radius_px)
+        lm, kp, _ = self._match(fr, R, t, visible, self.cfg.fine_radius_px)
         t3 = time.perf_counter()
         tm["match_ms"] += 1e3 * (t3 - t2)
         if len(lm) < 10:

@@ -137,7 +137,7 @@ def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera
         r = renderer.render(T, cam, stage=cfg.stage)
         t1 = time.perf_counter()
         gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
-        f = ext.extract(gray)
+        f = ext.extract_stella(gray)  # descriptors exactly as stella_vslam computes them
         ok = _depth_ok(r.depth, f.kpts, cfg.max_depth_step)
         f = f.subset(np.flatnonzero(ok))
         uvc = level_centres(f.kpts, f.octaves, cfg.orb.scale_factor)

@@ -1,0 +1,108 @@
+"""Prebuild & Localize on a simulated site: map build time and size, localization rate, APE and FPS on one core.
+
+    python benchmarks/pnl.py [--site runs/bench-sim/office] [--variants full:1.0 full:0.1 splat:1.0] [--spacing 1.0]
+
+Each variant is STAGE:FRACTION: the renderer stage the map is built from ("full" = neural, "splat" =
+plain point splats, the paper's ablation) and the fraction of the scan's points kept (random
+decimation). Maps are built with ``cristal -j 1 prebuild`` into SITE/pnl-maps/<variant>/ (reused when
+present; --rebuild to redo), then the light localizer runs over SITE/seq_00 with every thread pinned
+to one (OpenCV, OpenMP): the first frame relocalizes with no prior. APE is against groundtruth.txt,
+with no alignment. "track FPS" = 1000 / mean milliseconds of the frames that tracked; "FPS" = all
+frames (relocalizations included) over the wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+for _v in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ[_v] = "1"
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+cv2.setNumThreads(1)
+
+
+def build(site: Path, stage: str, fraction: float, spacing: float, rebuild: bool) -> tuple[Path, dict]:
+    out = site / "pnl-maps" / f"{stage}-{int(round(fraction * 100))}pct-{spacing:g}m"
+    meta = out / "build.json"
+    if meta.exists() and not rebuild:
+        return out, json.loads(meta.read_text())
+    cmd = [sys.executable, "-m", "services.cli", "-q", "-j", "1", "prebuild", str(site / "scan.ply"), "--camera",
+           str(site / "seq_00" / "camera.json"), "--out", str(out), "--stage", stage, "--spacing", str(spacing)]
+    if fraction < 1:
+        cmd += ["--decimate", str(fraction)]
+    r = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    meta.write_text(json.dumps(summary, indent=2) + "\n")
+    return out, summary
+
+
+def localize(map_dir: Path, seq_dir: Path) -> dict:
+    from services.eval.ape import compute_ape
+    from services.io.sequence import open_sequence
+    from services.io.trajectory import Trajectory
+    from services.localize.pnl import PnlConfig, PnlLocalizer
+    from services.localize.status import Status
+
+    seq = open_sequence(seq_dir)
+    t0 = time.perf_counter()
+    loc = PnlLocalizer.load(map_dir, PnlConfig())
+    load_s = time.perf_counter() - t0
+    traj = Trajectory()
+    track_ms, counts = [], {s: 0 for s in Status}
+    first = None
+    t0 = time.perf_counter()
+    for i, f in enumerate(seq):
+        r = loc.process(f.image, seq.camera)
+        counts[r.status] += 1
+        if i == 0:
+            first = r.status.value
+        if r.status == Status.TRACKING:
+            track_ms.append(r.timings["total_ms"])
+        if r.T_wc is not None:
+            traj.append(f.stamp, r.T_wc)
+    wall = time.perf_counter() - t0
+    a = compute_ape(seq.groundtruth, traj, "none") if len(traj) else None
+    return {"frames": len(seq), "localized": len(traj), "first": first, "relocalizations": counts[Status.RELOCALIZED],
+            "ape_cm": 100 * a.trans_rmse if a else float("nan"), "ape_deg": a.rot_rmse_deg if a else float("nan"),
+            "ape_median_cm": 100 * a.trans_median if a else float("nan"),
+            "track_fps": 1000 / np.mean(track_ms) if track_ms else 0.0,
+            "track_ms_median": float(np.median(track_ms)) if track_ms else float("nan"),
+            "fps": len(seq) / wall, "load_s": load_s}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--site", default="runs/bench-sim/office")
+    ap.add_argument("--variants", nargs="+", default=["full:1.0", "full:0.1", "splat:1.0"])
+    ap.add_argument("--spacing", type=float, default=1.0)
+    ap.add_argument("--rebuild", action="store_true")
+    args = ap.parse_args()
+    site = Path(args.site)
+    if not (site / "site.json").exists():
+        sys.exit(f"{site}: no simulated site (cristal sim --preset office --seed 1 --out {site})")
+    print("| site | map from | points | keyframes | landmarks | map MB | build s | localized | 1st frame | APE RMSE cm / deg (none) | APE median cm "
+          "| track ms (median) | track FPS | FPS all |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for v in args.variants:
+        stage, frac = v.split(":")
+        out, b = build(site, stage, float(frac), args.spacing, args.rebuild)
+        r = localize(out, site / "seq_00")
+        print(f"| {site.name} | {stage} | {b['points'] / 1e6:.2f} M ({float(frac):.0%}) | {b['keyframes']} | {b['landmarks']:,} "
+              f"| {b['bytes'] / 1e6:.1f} | {b['total_s']:.0f} | {r['localized']}/{r['frames']} = {r['localized'] / r['frames']:.1%} "
+              f"| {r['first']} | {r['ape_cm']:.2f} / {r['ape_deg']:.3f} | {r['ape_median_cm']:.2f} | {r['track_ms_median']:.1f} | {r['track_fps']:.0f} "
+              f"| {r['fps']:.0f} |", flush=True)
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    main()
