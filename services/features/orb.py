@@ -142,7 +142,7 @@ class OrbExtractor:
     def __init__(self, settings: OrbSettings = OrbSettings()):
         self.s = settings
         # detect generously at the minimum threshold; the stella selection below keeps what stella would
-        self._orb = cv2.ORB_create(nfeatures=settings.max_keypoints * 6, scaleFactor=settings.scale_factor,
+        self._orb = cv2.ORB_create(nfeatures=settings.max_keypoints * 3, scaleFactor=settings.scale_factor,
                                    nlevels=settings.num_levels, edgeThreshold=settings.edge, firstLevel=0, WTA_K=2,
                                    scoreType=cv2.ORB_FAST_SCORE, patchSize=31, fastThreshold=settings.min_fast_threshold)
         sf = settings.scale_factors

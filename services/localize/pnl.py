@@ -47,6 +47,7 @@ __all__ = ["PnlConfig", "PnlResult", "PnlLocalizer", "Status"]
 log = logging.getLogger(__name__)
 
 _CHI2_2DOF = 5.991
+_DESC_PER_LANDMARK = 4
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,8 @@ class PnlConfig:
     distribution_cell: int | None = None  # px; None: 12 at 640 px width, scaled with the frame width
     min_inliers: int = 30  # gate: fewer -> LOST
     max_rmse_px: float = 1.5  # gate: inlier reprojection RMSE (pixels, each divided by its pyramid scale)
+    max_sigma_m: float = 0.03  # gate: predicted 1-sigma camera-centre uncertainty from the inlier geometry
+    max_sigma_deg: float = 0.5  # gate: predicted 1-sigma orientation uncertainty
     coarse_radius_px: float = 16.0  # window around the predicted projection (x scale^octave, capped by the grid)
     fine_radius_px: float = 4.0  # window after the first pose estimate
     max_hamming: int = 80
@@ -67,7 +70,8 @@ class PnlConfig:
     reloc_min_inliers: int = 15
     use_velocity: bool = True
     cell_px: int = 24  # keypoint grid for window search
-    cell_capacity: int = 12
+    cell_capacity: int = 8
+    coarse_subsample: int = 2  # the wide-window pass searches every n-th visible landmark
 
 
 @dataclass
@@ -77,6 +81,8 @@ class PnlResult:
     inliers: int = 0
     rmse_px: float = float("nan")
     timings: dict[str, float] = field(default_factory=dict)  # ms
+    sigma_m: float = float("nan")  # predicted 1-sigma camera-centre uncertainty
+    sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
 
 
 class _MapIndex:
@@ -134,6 +140,16 @@ class _MapIndex:
         self.valid = has
         rep = np.where(has, rep, 0)
         self.desc = obs_desc[rep] if len(obs_desc) else np.zeros((M, 32), np.uint8)
+        # up to K observation descriptors per landmark (the medoid first): tracking takes the closest, which
+        # keeps matching across the viewpoint and scale changes between the keyframes and the live camera
+        K = _DESC_PER_LANDMARK
+        self.descs = np.repeat(self.desc[:, None, :], K, axis=1)
+        if len(obs_desc):
+            for k in range(1, K):
+                j = np.minimum(k - 1, np.maximum(count - 1, 0))  # the k-th other observation (repeats when fewer)
+                o = order[np.minimum(start + j, len(order) - 1)]
+                ok = (count > k - 1) & has
+                self.descs[ok, k] = obs_desc[o[ok]]
         self.angle = obs_ang[rep] if len(obs_ang) else np.zeros(M, np.float32)
         # scale range and mean viewing direction (stella: from the reference keyframe's observation)
         ref_kf_row = {int(k): i for i, k in enumerate(kf_ids)}
@@ -185,13 +201,27 @@ class PnlLocalizer:
         self._vel: Pose | None = None  # T_cw(t) @ T_wc(t-1): the last frame-to-frame motion
         self._local_key: tuple | None = None
         self._local_rows = np.zeros(0, np.int64)
+        self._local_P = np.zeros((0, 3))
         self.relocalizations = 0
+        self._sigma = (float("inf"), float("inf"))
         log.info("P&L localizer: %d keyframes, %d landmarks indexed in %.2f s", stella_map.n_keyframes,
                  stella_map.n_landmarks, time.perf_counter() - t0)
 
     @classmethod
     def load(cls, map_dir: str | Path, cfg: PnlConfig = PnlConfig()) -> "PnlLocalizer":
         return cls(read_map(map_dir), cfg)
+
+    def __copy__(self) -> "PnlLocalizer":
+        """A localizer over the same (read-only) map index with its own tracking state and extractors (one per client/thread)."""
+        new = object.__new__(PnlLocalizer)
+        new.__dict__.update(self.__dict__)
+        new._extractors = {}
+        new._local_key = None
+        new._local_rows = np.zeros(0, np.int64)
+        new._local_P = np.zeros((0, 3))
+        new.relocalizations = 0
+        new.reset()
+        return new
 
     # ---- state ----------------------------------------------------------------------
     def reset(self) -> None:
@@ -255,30 +285,39 @@ class PnlLocalizer:
         rows = np.unique(np.concatenate([idx.kf_lms[i] for i in near])) if len(near) else np.zeros(0, np.int64)
         self._local_key = (c.copy(), T_wc.R[:, 2].copy())
         self._local_rows = rows
+        self._local_P = np.ascontiguousarray(idx.pos[rows])
         return rows
 
     # ---- projection matching ----------------------------------------------------------------
-    def _match(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Landmark rows and keypoint indices matched by projecting ``rows`` with world-to-camera (R, t); and the visible rows."""
+    def _match(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, radius: float,
+               subsample: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Landmark rows and keypoint indices matched by projecting ``rows`` with world-to-camera (R, t); and the visible rows.
+
+        ``subsample``: search only every n-th visible landmark (the first, wide-window pass needs a pose, not every match).
+        """
         idx, cfg = self.idx, self.cfg
-        P = idx.pos[rows]
-        Xc = P @ R.T + t
-        z = Xc[:, 2]
-        front = z > 0.05
-        zs = np.where(front, z, 1.0)
-        u = fr.K[0, 0] * Xc[:, 0] / zs + fr.K[0, 2]
-        v = fr.K[1, 1] * Xc[:, 1] / zs + fr.K[1, 2]
-        cam_c = -R.T @ t
-        PO = P - cam_c
-        dist = np.linalg.norm(PO, axis=1)
-        ok = front & (u >= -8) & (u < fr.width + 8) & (v >= -8) & (v < fr.height + 8)
-        ok &= (dist >= 0.7 * idx.min_dist[rows]) & (dist <= 1.3 * idx.max_dist[rows])
-        ok &= np.einsum("ij,ij->i", PO, idx.normal[rows]) >= 0.5 * dist
+        P = self._local_P if rows is self._local_rows else idx.pos[rows]
+        # in front and inside the image first (cheap, removes most), then scale range and viewing angle
+        z = P @ R[2] + t[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iz = np.where(z > 0.05, 1.0 / z, -1.0)
+            u = fr.K[0, 0] * (P @ R[0] + t[0]) * iz + fr.K[0, 2]
+            v = fr.K[1, 1] * (P @ R[1] + t[1]) * iz + fr.K[1, 2]
+        sel = np.flatnonzero((iz > 0) & (u >= -8) & (u < fr.width + 8) & (v >= -8) & (v < fr.height + 8))
+        rs = rows[sel]
+        PO = P[sel] - (-R.T @ t)
+        dist = np.sqrt(np.einsum("ij,ij->i", PO, PO))
+        ok = (dist >= 0.7 * idx.min_dist[rs]) & (dist <= 1.3 * idx.max_dist[rs])
+        ok &= np.einsum("ij,ij->i", PO, idx.normal[rs]) >= 0.5 * dist
+        u, v, dist = u[sel], v[sel], dist
         sel = np.flatnonzero(ok)
+        rows = rs
         if len(sel) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), rows[sel]
+        visible = rows[sel]
+        if subsample > 1:
+            sel = sel[::subsample]
         rows, u, v, dist = rows[sel], u[sel], v[sel], dist[sel]
-        visible = rows
         pred_oct = np.clip(np.ceil(np.log(np.maximum(idx.max_dist[rows] / dist, 1e-9)) / idx.log_sf), 0, idx.num_levels - 1).astype(np.int64)
         r = np.minimum(radius * idx.scale_factor ** pred_oct, cfg.cell_px)
         c = cfg.cell_px
@@ -295,7 +334,7 @@ class PnlLocalizer:
         li, kp = li[m], kp[m]
         if len(li) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), visible
-        hd = hamming(idx.desc[rows[li]], fr.feats.desc[kp])
+        hd = hamming(idx.descs[rows[li]], fr.feats.desc[kp][:, None, :]).min(axis=1)
         order = np.lexsort((hd, li))
         li, kp, hd = li[order], kp[order], hd[order]
         first = np.r_[True, li[1:] != li[:-1]]
@@ -324,7 +363,7 @@ class PnlLocalizer:
         return rows[lm_i], kp_i, visible
 
     # ---- pose optimisation ------------------------------------------------------------------
-    def _optimize(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, kp: np.ndarray, rounds=(6, 4, 3, 3)):
+    def _optimize(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, kp: np.ndarray, rounds=(4, 3, 2)):
         """Motion-only Gauss-Newton, Huber weights, chi-square outlier rounds. Returns (R, t, inlier mask, rmse_px)."""
         P = self.idx.pos[rows]
         uv = fr.uv[kp]
@@ -358,7 +397,7 @@ class PnlLocalizer:
                 dR = cv2.Rodrigues(dx[:3])[0]
                 R = dR @ R
                 t = dR @ t + dx[3:]
-                if np.abs(dx).max() < 1e-7:
+                if np.abs(dx).max() < 1e-6:
                     break
             # classify all matches
             Xc = P @ R.T + t
@@ -375,19 +414,46 @@ class PnlLocalizer:
             return np.eye(3), np.zeros(3), np.zeros(len(rows), bool), float("inf")
         # RMSE in level-0 pixels with each residual divided by its keypoint's pyramid scale (chi-square units)
         px2 = e2[inl]
-        return R, t, inl, float(math.sqrt(px2.mean())) if len(px2) else float("inf")
+        rmse = float(math.sqrt(px2.mean())) if len(px2) else float("inf")
+        self._sigma = self._covariance(fr, R, t, P[inl], w_oct[inl], rmse)
+        return R, t, inl, rmse
+
+    @staticmethod
+    def _covariance(fr: _Frame, R: np.ndarray, t: np.ndarray, P: np.ndarray, w: np.ndarray, rmse: float) -> tuple[float, float]:
+        """Predicted 1-sigma camera-centre (m) and orientation (deg) uncertainty from the inlier geometry (first order).
+
+        With the left perturbation on T_cw the camera centre moves by -R^T v, so its covariance is the translation block.
+        """
+        if len(P) < 6 or not math.isfinite(rmse):
+            return float("inf"), float("inf")
+        fx, fy = fr.K[0, 0], fr.K[1, 1]
+        Xc = P @ R.T + t
+        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+        iz = 1.0 / np.maximum(z, 1e-6)
+        a, b = fx * iz, fy * iz
+        zero = np.zeros_like(a)
+        Ju = np.stack([-a * x * y * iz, a * (z + x * x * iz), -a * y, a, zero, -a * x * iz], 1)
+        Jv = np.stack([-b * (z + y * y * iz), b * x * y * iz, b * x, zero, b, -b * y * iz], 1)
+        H = (Ju * w[:, None]).T @ Ju + (Jv * w[:, None]).T @ Jv
+        try:
+            C = np.linalg.inv(H) * max(rmse, 0.5) ** 2
+        except np.linalg.LinAlgError:
+            return float("inf"), float("inf")
+        sr = math.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0))
+        st = math.sqrt(max(float(np.linalg.eigvalsh(C[3:, 3:]).max()), 0.0))
+        return st, math.degrees(sr)
 
     def _track(self, fr: _Frame, T_wc_pred: Pose, coarse_radius: float, tm: dict) -> tuple[np.ndarray, np.ndarray, int, float] | None:
         t0 = time.perf_counter()
         rows = self._local(T_wc_pred)
         T_cw = T_wc_pred.inverse()
         R, t = T_cw.R.copy(), T_cw.t.copy()
-        lm, kp, visible = self._match(fr, R, t, rows, coarse_radius)
+        lm, kp, visible = self._match(fr, R, t, rows, coarse_radius, self.cfg.coarse_subsample)
         t1 = time.perf_counter()
         tm["match_ms"] = tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
         if len(lm) < 10:
             return None
-        R, t, inl, _ = self._optimize(fr, R, t, lm, kp, rounds=(6, 4, 3))
+        R, t, inl, _ = self._optimize(fr, R, t, lm, kp, rounds=(4, 2))
         t2 = time.perf_counter()
         tm["pose_ms"] = tm.get("pose_ms", 0.0) + 1e3 * (t2 - t1)
         if inl.sum() < 10:
@@ -399,10 +465,15 @@ class PnlLocalizer:
             return None
         R, t, inl, rmse = self._optimize(fr, R, t, lm, kp)
         tm["pose_ms"] += 1e3 * (time.perf_counter() - t3)
-        return R, t, int(inl.sum()), rmse
+        return R, t, int(inl.sum()), rmse, *self._sigma
+
+    def _plausible(self, r) -> bool:
+        """Enough inliers with a small reprojection error: a pose to keep tracking from."""
+        return r is not None and r[2] >= self.cfg.min_inliers and r[3] <= self.cfg.max_rmse_px
 
     def _good(self, r) -> bool:
-        return r is not None and r[2] >= self.cfg.min_inliers and r[3] <= self.cfg.max_rmse_px
+        """Plausible and well constrained: a pose to report."""
+        return self._plausible(r) and r[4] <= self.cfg.max_sigma_m and r[5] <= self.cfg.max_sigma_deg
 
     # ---- relocalization ------------------------------------------------------------------------
     def _relocalize(self, fr: _Frame, tm: dict):
@@ -462,6 +533,7 @@ class PnlLocalizer:
         """Localize one frame (grey or BGR uint8). ``prior``: a camera-to-world hint (odometry, server) for this frame."""
         tm: dict[str, float] = {}
         t_start = time.perf_counter()
+        c_start = time.thread_time()
         fr = self._frame(image, camera)
         tm["features_ms"] = 1e3 * (time.perf_counter() - t_start)
         status = Status.TRACKING
@@ -473,23 +545,27 @@ class PnlLocalizer:
             if self.cfg.use_velocity and self._vel is not None:
                 pred = self.T_last @ self._vel  # T_wc(t) = T_wc(t-1) @ (T_c(t-2)c(t-1))
             r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
-            if not self._good(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
+            if not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
                 r = self._track(fr, self.T_last, 2 * self.cfg.coarse_radius_px, tm)
-        if not self._good(r):
+        if not self._plausible(r):
             r = self._relocalize(fr, tm)
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1
         tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
-        if not self._good(r):
+        tm["cpu_ms"] = 1e3 * (time.thread_time() - c_start)  # this thread's CPU time: one core's cost on a busy machine
+        if not self._plausible(r):
             self.T_last = None
             self._vel = None
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm)
-        R, t, n, rmse = r
+        R, t, n, rmse, sig_m, sig_deg = r
         T_wc = Pose(R.T, -R.T @ t)
+        if not self._good(r):  # weakly constrained: no pose reported, but tracking continues from it
+            self.T_last, self._vel = T_wc, None
+            return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg)
         if self.T_last is not None and status == Status.TRACKING:
             self._vel = self.T_last.inverse() @ T_wc
         else:
             self._vel = None
         self.T_last = T_wc
-        return PnlResult(status, T_wc, n, rmse, tm)
+        return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
