@@ -92,6 +92,13 @@ def run_build_db(args) -> int:
     return 0
 
 
+def _seconds(stamp: str) -> float | None:
+    try:
+        return float(stamp)
+    except ValueError:
+        return None
+
+
 def run_localize(args) -> int:
     from services.cli import CliError
 
@@ -130,7 +137,7 @@ def run_localize(args) -> int:
     for i, frame in enumerate(progress(seq, desc="localizing", total=n, unit="frame")):
         if i >= n:
             break
-        r = tracker.process(frame.image, seq.camera)
+        r = tracker.process(frame.image, seq.camera, stamp=_seconds(frame.stamp))
         counts[r.status] += 1
         for k, v in r.timings.items():
             stage[k] = stage.get(k, 0.0) + v / n

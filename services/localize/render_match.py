@@ -11,6 +11,17 @@ weakens) the scan is re-rendered at the new pose and the frame is matched once m
 refines its pose. Gates on inliers and reprojection error turn weak solutions into LOST, never a
 guess. With no pose (first frame, after LOST) the relocalization database gives a coarse pose,
 which a render at that pose refines before tracking starts.
+
+Two things keep it accurate where a plain render-and-match is not:
+- **Motion blur.** In a fast turn the live frame is blurred and its features move (measured: a
+  2-3 px systematic shift, a third of the matches lost). With frame timestamps the tracker knows
+  the camera's motion (constant velocity from the last two poses), so it blurs the keyframe render
+  with that motion over the exposure time before extracting features. The exposure time comes
+  from the caller (``exposure_s``), the config, or is calibrated on the first strongly moving
+  frames (the exposure whose blurred render matches best; the median of a few such frames).
+- **Sparse scans.** Where a render is mostly holes (far or grazing surfaces, views through a
+  window) the keyframe is re-rendered at half resolution, where the same points cover the image,
+  and the live frame is matched at that resolution too.
 """
 
 from __future__ import annotations
@@ -18,25 +29,21 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from enum import Enum
 
+import cv2
 import numpy as np
 
 from services.features.matching import mutual_nn
 from services.features.xfeat import Features, XFeatExtractor
+from services.geometry.blur import blur_length_px, exposure_poses, motion_blur
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
+from services.localize.status import Status
 
-__all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker"]
+__all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "smooth_depth"]
 
 log = logging.getLogger(__name__)
-
-
-class Status(str, Enum):
-    TRACKING = "tracking"
-    RELOCALIZED = "relocalized"
-    LOST = "lost"
 
 
 @dataclass(frozen=True)
@@ -50,16 +57,27 @@ class RMConfig:
     rerender_m: float = 0.15  # re-render when the pose is this far from the keyframe ...
     rerender_deg: float = 6.0  # ... or turned this much
     rerender_inlier_ratio: float = 0.4  # ... or inliers fell below this fraction of the keyframe's first match
-    render_scale: float = 0.75  # keyframe render resolution relative to the frame (features need less than the frame)
+    max_holes: float = 0.35  # a keyframe render with more holes than this is redone at half resolution ...
+    coarse_levels: int = 2  # ... at most this many times (sparse scans, far surfaces, views through windows)
     reloc_candidates: int = 8
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
+    recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
+    edge_window: int = 5  # pixels: a keypoint's depth must be smooth over this window of the render ...
+    edge_rel_depth: float = 0.05  # ... within this fraction of its depth (rejects depth edges); 0 = off
+    exposure_s: float | None = None  # camera exposure time; None: per frame from the caller, else calibrated
+    blur_min_px: float = 3.0  # blur the keyframe render when the frame's predicted blur exceeds this (frame pixels)
+    calib_min_px: float = 10.0  # frames moving at least this much per frame interval calibrate the exposure ...
+    calib_frames: int = 8  # ... until this many have
+    calib_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)  # exposure candidates, x frame interval
 
 
 @dataclass
 class Keyframe:
     T_wc: Pose
-    camera: Camera
-    feats: Features  # only keypoints with measured depth
+    frame_camera: Camera  # the live camera this keyframe serves
+    scale: float  # render resolution relative to the live frame (the live frame is matched at it)
+    render: object  # services.render.renderer.Render
+    feats: Features  # only keypoints with measured, smooth depth
     xyz: np.ndarray  # (N, 3) world points of those keypoints
     ref_inliers: int = 0
 
@@ -74,6 +92,35 @@ class FrameResult:
     timings: dict[str, float] = field(default_factory=dict)  # ms
     sigma_m: float = float("nan")  # predicted 1-sigma camera-centre uncertainty
     sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
+    blur_px: float = 0.0  # predicted motion blur of the frame (pixels) the render was blurred with
+
+
+def smooth_depth(depth: np.ndarray, uv: np.ndarray, window: int, rel: float) -> np.ndarray:
+    """True where the measured depth around pixel ``uv`` spans less than ``rel`` of its value.
+
+    A keypoint on a depth discontinuity back-projects to whichever side its pixel happens to fall on:
+    a biased point that is not a gross outlier, so RANSAC keeps it. A plane seen at up to ~75 degrees passes.
+    """
+    k = cv2.getStructuringElement(cv2.MORPH_RECT, (window, window))
+    d = depth.astype(np.float32)
+    dmax = cv2.dilate(d, k)
+    dmin = cv2.erode(np.where(d > 0, d, np.float32(np.inf)), k)
+    px = np.clip(np.round(uv).astype(int), 0, [d.shape[1] - 1, d.shape[0] - 1])
+    lo, hi = dmin[px[:, 1], px[:, 0]], dmax[px[:, 1], px[:, 0]]
+    return np.isfinite(lo) & (hi - lo <= rel * lo)
+
+
+@dataclass
+class _Frame:
+    """What one ``process`` call knows about its frame."""
+
+    image: np.ndarray
+    camera: Camera
+    tm: dict
+    motion: tuple[Pose, float] | None  # camera motion (T_prev^-1 T_last) over dt seconds, for blur
+    dt_next: float  # seconds since the last localized frame
+    exposure_s: float | None
+    live: dict = field(default_factory=dict)  # scale -> Features
 
 
 class RenderMatchTracker:
@@ -82,49 +129,147 @@ class RenderMatchTracker:
         self.extractor = extractor
         self.db = db
         self.cfg = cfg
-        self.kf: Keyframe | None = None
-        self.T_last: Pose | None = None
         self.relocalizations = 0
+        # exposure calibration: per candidate (fraction of the frame interval) the summed share of inliers it got
+        self.calib_scores = np.zeros(len(cfg.calib_fractions))
+        self.calib_intervals: list[float] = []
+        self.reset()
 
     def reset(self) -> None:
-        self.kf = None
-        self.T_last = None
+        """Forget the track (the next frame relocalizes from the database)."""
+        self._lose()
+        self.recent: tuple[Pose, float | None] | None = None  # last good pose and its stamp, kept while LOST
+        self.lost_frames = 0
+
+    def _lose(self) -> None:
+        self.kf: Keyframe | None = None
+        self.T_last: Pose | None = None
+        self.stamp_last: float | None = None
+        self.motion: tuple[Pose, float] | None = None
+
+    @property
+    def exposure_s(self) -> float | None:
+        """The exposure time in use: configured, else the calibrated median, else None (no blur yet)."""
+        if self.cfg.exposure_s is not None:
+            return self.cfg.exposure_s
+        if not self.calib_intervals:
+            return None
+        return float(self.cfg.calib_fractions[int(np.argmax(self.calib_scores))] * np.median(self.calib_intervals))
 
     # ---- pieces --------------------------------------------------------------
-    def _keyframe(self, T_wc: Pose, camera: Camera, tm: dict) -> Keyframe:
-        t0 = time.perf_counter()
-        cam = camera.scaled(self.cfg.render_scale) if self.cfg.render_scale != 1.0 else camera
-        r = self.renderer.render(T_wc, cam)
-        t1 = time.perf_counter()
-        f = self.extractor.extract(r.rgb)
-        X, ok = r.backproject(f.kpts.astype(np.float64))
-        tm["render_ms"] = tm.get("render_ms", 0.0) + 1e3 * (t1 - t0)
-        tm["kf_features_ms"] = tm.get("kf_features_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
-        return Keyframe(T_wc, cam, f.subset(ok), X[ok])
+    def _base_scale(self, camera: Camera) -> float:
+        """The live frame's feature resolution (the extractor's ``max_side``); keyframes render at it."""
+        side = self.extractor.max_side
+        return min(1.0, side / max(camera.width, camera.height)) if side else 1.0
 
-    def _match(self, live: Features, kf: Keyframe, camera: Camera, initial: Pose | None, tm: dict) -> PnpResult | None:
+    def _live(self, fr: _Frame, scale: float) -> Features:
+        """Live-frame features at ``scale`` of its resolution, computed once per frame and scale."""
+        if scale not in fr.live:
+            t0 = time.perf_counter()
+            fr.live[scale] = self.extractor.extract(fr.image, max_side=max(32, round(scale * max(fr.image.shape[:2]))))
+            fr.tm["features_ms"] = fr.tm.get("features_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+        return fr.live[scale]
+
+    def _points(self, render, rgb: np.ndarray, tm: dict) -> tuple[Features, np.ndarray]:
+        """Features of a render image with the world points behind them (measured, smooth depth only)."""
         t0 = time.perf_counter()
-        m = mutual_nn(live.desc, kf.feats.desc, self.cfg.match_cos)
+        f = self.extractor.extract(rgb)
+        X, ok = render.backproject(f.kpts.astype(np.float64))
+        if self.cfg.edge_rel_depth > 0:
+            ok &= smooth_depth(render.depth, f.kpts, self.cfg.edge_window, self.cfg.edge_rel_depth)
+        tm["kf_features_ms"] = tm.get("kf_features_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+        return f.subset(ok), X[ok]
+
+    def _keyframe(self, T_wc: Pose, fr: _Frame) -> Keyframe:
+        """Render at ``T_wc``; coarser while the render is mostly holes (sparse scans)."""
+        s = self._base_scale(fr.camera)
+        for level in range(self.cfg.coarse_levels + 1):
+            cam = fr.camera.scaled(s) if s != 1.0 else fr.camera
+            t0 = time.perf_counter()
+            r = self.renderer.render(T_wc, cam)
+            fr.tm["render_ms"] = fr.tm.get("render_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+            if r.hole_fraction <= self.cfg.max_holes or level == self.cfg.coarse_levels or min(cam.width, cam.height) < 160:
+                break
+            s /= 2
+        feats, xyz = self._points(r, r.rgb, fr.tm)
+        return Keyframe(T_wc, fr.camera, s, r, feats, xyz)
+
+    def _blur_px(self, fr: _Frame, exposure_s: float | None) -> float:
+        if fr.motion is None or not exposure_s:
+            return 0.0
+        D, dt = fr.motion
+        return blur_length_px(fr.camera, Pose.identity(), Pose.identity().interpolate(D, exposure_s / dt))
+
+    def _blurred_points(self, kf: Keyframe, fr: _Frame, exposure_s: float) -> tuple[Features, np.ndarray]:
+        """The keyframe's features after blurring its render with the frame's motion over ``exposure_s``."""
+        D, dt = fr.motion
+        n = int(np.clip(np.ceil(self._blur_px(fr, exposure_s) * kf.scale), 2, 10))
+        t0 = time.perf_counter()
+        r = kf.render
+        img = motion_blur(r.rgb, r.depth_filled, r.camera, kf.T_wc, exposure_poses(kf.T_wc, D, dt, exposure_s, n))
+        fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+        return self._points(r, np.clip(img + 0.5, 0, 255).astype(np.uint8), fr.tm)
+
+    def _solve(self, live: Features, feats: Features, xyz: np.ndarray, fr: _Frame, initial: Pose | None,
+               px_factor: float = 1.0) -> PnpResult | None:
+        """Match and solve. ``px_factor``: frame pixels per feature pixel relative to the base resolution
+        (2 at half resolution): the RANSAC threshold and the reprojection gate scale with it."""
+        t0 = time.perf_counter()
+        m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos)
         t1 = time.perf_counter()
-        r = solve_pnp(live.kpts[m[:, 0]], kf.xyz[m[:, 1]], camera, self.cfg.ransac_px, initial=initial) if len(m) >= 6 else None
-        tm["match_ms"] = tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
-        tm["pose_ms"] = tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
+        r = None
+        if len(m) >= 6:
+            r = solve_pnp(live.kpts[m[:, 0]], xyz[m[:, 1]], fr.camera, self.cfg.ransac_px * px_factor, initial=initial)
+            if r is not None:
+                r.px_factor = px_factor  # read by _good
+        fr.tm["match_ms"] = fr.tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
+        fr.tm["pose_ms"] = fr.tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
         return r
 
+    def _match(self, kf: Keyframe, fr: _Frame, initial: Pose | None) -> PnpResult | None:
+        """Match the frame against a keyframe, blurred like the frame when it moves fast."""
+        live = self._live(fr, kf.scale)
+        px = self._base_scale(fr.camera) / kf.scale
+        exposure = fr.exposure_s or self.exposure_s
+        calibrate = (fr.exposure_s is None and self.cfg.exposure_s is None and fr.motion is not None
+                     and len(self.calib_intervals) < self.cfg.calib_frames
+                     and self._blur_px(fr, fr.motion[1]) >= self.cfg.calib_min_px)
+        if calibrate:  # try every exposure candidate; the frame keeps the best pose, the scores accumulate
+            results = []
+            for frac in self.cfg.calib_fractions:
+                e = frac * fr.motion[1]
+                pts = self._blurred_points(kf, fr, e) if self._blur_px(fr, e) >= 1.0 else (kf.feats, kf.xyz)
+                results.append(self._solve(live, *pts, fr, initial, px))
+            inl = np.array([0 if r is None else r.n_inliers for r in results], float)
+            best = results[int(np.argmax(inl))]
+            if self._good(best):
+                self.calib_scores += inl / inl.max()
+                self.calib_intervals.append(fr.motion[1])
+                log.info("exposure calibration %d/%d: best %.1f ms on this frame, %.1f ms over all", len(self.calib_intervals),
+                         self.cfg.calib_frames, 1e3 * self.cfg.calib_fractions[int(np.argmax(inl))] * fr.motion[1], 1e3 * self.exposure_s)
+            return best
+        blur = self._blur_px(fr, exposure)
+        pts = self._blurred_points(kf, fr, exposure) if blur >= self.cfg.blur_min_px else (kf.feats, kf.xyz)
+        return self._solve(live, *pts, fr, initial, px)
+
     def _good(self, r: PnpResult | None) -> bool:
-        return (r is not None and r.n_inliers >= self.cfg.min_inliers and r.reproj_rmse_px <= self.cfg.max_rmse_px
+        if r is not None and log.isEnabledFor(logging.DEBUG):
+            log.debug("candidate: %d inliers, %.2f px, sigma %.1f cm %.2f deg", r.n_inliers, r.reproj_rmse_px,
+                      100 * r.sigma_t_m, r.sigma_r_deg)
+        return (r is not None and r.n_inliers >= self.cfg.min_inliers
+                and r.reproj_rmse_px <= self.cfg.max_rmse_px * getattr(r, "px_factor", 1.0)
                 and r.sigma_t_m <= self.cfg.max_sigma_m and r.sigma_r_deg <= self.cfg.max_sigma_deg)
 
     def _far(self, T: Pose, kf: Keyframe) -> bool:
         dt, dr = T.distance_to(kf.T_wc)
         return dt > self.cfg.rerender_m or dr > self.cfg.rerender_deg
 
-    def _render_and_refine(self, live: Features, camera: Camera, T: Pose, tm: dict, rounds: int = 1) -> PnpResult | None:
+    def _render_and_refine(self, fr: _Frame, T: Pose, rounds: int = 1) -> PnpResult | None:
         """Render at ``T`` and match, up to ``rounds`` times while the pose still moves; keeps the last keyframe."""
         r = None
         for _ in range(rounds):
-            kf = self._keyframe(T, camera, tm)
-            r = self._match(live, kf, camera, T, tm)
+            kf = self._keyframe(T, fr)
+            r = self._match(kf, fr, T)
             if not self._good(r):
                 return None
             kf.ref_inliers = r.n_inliers
@@ -135,45 +280,79 @@ class RenderMatchTracker:
         return r
 
     # ---- the frame loop --------------------------------------------------------
-    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None) -> FrameResult:
-        """Localize one frame (``image`` uint8, any channel order). ``prior``: a pose hint (e.g. from odometry)."""
-        tm: dict[str, float] = {}
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, stamp: float | None = None,
+                exposure_s: float | None = None, motion: Pose | None = None) -> FrameResult:
+        """Localize one frame.
+
+        ``image``: uint8, any channel order. ``prior``: a pose hint (e.g. from odometry) used when the
+        tracker has no pose. ``stamp``: capture time in seconds (mid-exposure); with it the tracker
+        predicts motion at constant velocity and matches blurred frames. ``exposure_s``: the frame's
+        exposure time when the camera reports it. ``motion``: the camera's motion since the previous
+        frame from the device's own odometry (``T_prev^-1 @ T_now``); it replaces the constant-velocity guess.
+        """
         t_start = time.perf_counter()
-        t0 = time.perf_counter()
-        live = self.extractor.extract(image)
-        tm["features_ms"] = 1e3 * (time.perf_counter() - t0)
+        consecutive = stamp is not None and self.stamp_last is not None and 0 < stamp - self.stamp_last < 0.5
+        fr = _Frame(image, camera, {}, self.motion if consecutive else None,
+                    (stamp - self.stamp_last) if consecutive else 0.0, exposure_s)
+        if motion is not None and consecutive:
+            fr.motion = (motion, fr.dt_next)
         status = Status.TRACKING
         r: PnpResult | None = None
         rerendered = False
         if prior is not None and self.T_last is None:
             self.T_last = prior
         if self.T_last is not None:
+            T_pred = self.T_last
+            if motion is not None:  # the device's odometry
+                T_pred = self.T_last @ motion
+            elif fr.motion is not None:  # constant velocity
+                D, dt = fr.motion
+                T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
             kf = self.kf
-            if kf is None or kf.camera.width != round(camera.width * self.cfg.render_scale) or self._far(self.T_last, kf):
-                r = self._render_and_refine(live, camera, self.T_last, tm)
+            if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
+                r = self._render_and_refine(fr, T_pred)
                 rerendered = True
             else:
-                r = self._match(live, kf, camera, self.T_last, tm)
-                if log.isEnabledFor(logging.DEBUG):
-                    log.debug("keyframe match: good=%s far=%s inliers=%s ref=%d", self._good(r), r is not None and self._far(r.T_wc, kf),
-                              None if r is None else r.n_inliers, kf.ref_inliers)
+                r = self._match(kf, fr, T_pred)
                 if not self._good(r) or self._far(r.T_wc, kf) or r.n_inliers < self.cfg.rerender_inlier_ratio * kf.ref_inliers:
-                    r = self._render_and_refine(live, camera, r.T_wc if self._good(r) else self.T_last, tm)
+                    r = self._render_and_refine(fr, r.T_wc if self._good(r) else T_pred)
                     rerendered = True
+        if not self._good(r) and self.T_last is None and self.recent is not None:
+            # re-acquire near the last good pose: a blurred or featureless frame or two should not cost a database query
+            T_rec, s_rec = self.recent
+            self.lost_frames += 1
+            age = (stamp - s_rec) if (stamp is not None and s_rec is not None) else self.lost_frames / 30.0
+            if age <= self.cfg.recover_s:
+                fr.motion = None
+                r = self._render_and_refine(fr, T_rec, self.cfg.reloc_refine_rounds)
+                if self._good(r):
+                    status = Status.RELOCALIZED
+                    self.relocalizations += 1
+                    rerendered = True
+            else:
+                self.recent = None
         if not self._good(r) and self.db is not None:
+            feats = self._live(fr, self._base_scale(camera))
             t0 = time.perf_counter()
-            coarse, _ = self.db.localize(live, camera, k=self.cfg.reloc_candidates, min_inliers=max(15, self.cfg.min_inliers // 2))
-            tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
-            r = self._render_and_refine(live, camera, coarse.T_wc, tm, self.cfg.reloc_refine_rounds) if coarse is not None else None
+            coarse, _ = self.db.localize(feats, camera, k=self.cfg.reloc_candidates, min_inliers=max(15, self.cfg.min_inliers // 2))
+            fr.tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
+            fr.motion = None  # a relocalized frame starts without motion
+            r = self._render_and_refine(fr, coarse.T_wc, self.cfg.reloc_refine_rounds) if coarse is not None else None
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1
                 rerendered = True
-        tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
+        fr.tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
         if not self._good(r):
-            self.T_last = None
-            self.kf = None
+            if self.T_last is not None:
+                self.recent, self.lost_frames = (self.T_last, self.stamp_last), 0
+            self._lose()
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
-                               float("nan") if r is None else r.reproj_rmse_px, rerendered, tm)
-        self.T_last = r.T_wc
-        return FrameResult(status, r.T_wc, r.n_inliers, r.reproj_rmse_px, rerendered, tm, r.sigma_t_m, r.sigma_r_deg)
+                               float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm)
+        if consecutive and status == Status.TRACKING:
+            self.motion = (self.T_last.inverse() @ r.T_wc, stamp - self.stamp_last)
+        else:
+            self.motion = None
+        self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
+        return FrameResult(status, r.T_wc, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg,
+                           self._blur_px(fr, fr.exposure_s or self.exposure_s))

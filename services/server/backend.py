@@ -48,10 +48,10 @@ class _RMTracker:
     def reset(self) -> None:
         self.t.reset()
 
-    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None) -> TrackResult:
-        if motion is not None and self.t.T_last is not None:
-            self.t.T_last = self.t.T_last @ motion  # the device's odometry predicts the next pose
-        r = self.t.process(image, camera, prior)
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None,
+                stamp: float | None = None) -> TrackResult:
+        # stamps give the tracker its constant-velocity prediction and motion-blur model; odometry replaces the former
+        r = self.t.process(image, camera, prior, stamp=stamp, motion=motion)
         return TrackResult(_status(r.status), r.T_wc, int(r.inliers), float(r.rmse_px), float(r.sigma_m),
                            float(r.sigma_deg), dict(r.timings))
 
@@ -67,14 +67,19 @@ class RMBackend:
 
     @classmethod
     def load(cls, scan_path: str | Path, db_path: str | Path, device: str = "auto", max_side: int | None = None) -> "RMBackend":
-        from services.features.xfeat import XFeatExtractor
         from services.io.scans import load_scan
         from services.relocalize.database import RelocDB
         from services.render.renderer import Renderer
 
         db = RelocDB.load(db_path)
         scan = load_scan(scan_path)
-        renderer = Renderer(scan, device=device)
+        return cls.from_loaded(scan, Renderer(scan, device=device), db, max_side)
+
+    @classmethod
+    def from_loaded(cls, scan, renderer, db, max_side: int | None = None) -> "RMBackend":
+        """Over a scan, renderer and database already in memory (``cristal demo`` shares them with its build steps)."""
+        from services.features.xfeat import XFeatExtractor
+
         if max_side is None:
             max_side = None if renderer.device.type == "cuda" else 480
         ext = XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side)
@@ -98,7 +103,8 @@ class _PnlTracker:
         self.loc.reset()
         self.T_last = None
 
-    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None) -> TrackResult:
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None,
+                stamp: float | None = None) -> TrackResult:
         if prior is None and motion is not None and self.T_last is not None:
             prior = self.T_last @ motion
         r = self.loc.process(image, camera, prior)

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
+from services.geometry.blur import blur_length_px
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 from services.sim.materials import linear_to_srgb
@@ -51,29 +51,9 @@ class AutoExposure:
         return float(np.exp(self.log_gain))
 
 
-def motion_blur(sharp: np.ndarray, depth: np.ndarray, camera: Camera, T_wc: Pose, sub_poses: list[Pose]) -> np.ndarray:
-    """Average of ``sharp`` (taken at ``T_wc``) as seen from each sub-exposure pose."""
-    if len(sub_poses) <= 1:
-        return sharp
-    rays = camera.pixel_rays().reshape(-1, 3)
-    d = depth.reshape(-1, 1).astype(np.float64)
-    far = np.where(d > 0, d, 50.0)  # sky / misses: treat as far away
-    acc = np.zeros_like(sharp, dtype=np.float32)
-    for T_k in sub_poses:
-        T_ck = T_wc.inverse() @ T_k  # sub-pose camera -> sharp camera
-        X = (rays * far) @ T_ck.R.T + T_ck.t
-        uv, z = camera.project(X)
-        mx = uv[:, 0].reshape(camera.height, camera.width).astype(np.float32)
-        my = uv[:, 1].reshape(camera.height, camera.width).astype(np.float32)
-        acc += cv2.remap(sharp, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    return acc / len(sub_poses)
-
-
 def blur_samples(camera: Camera, T_a: Pose, T_b: Pose, max_samples: int) -> int:
     """Sub-exposure samples needed so the ghosts of a blur are about a pixel apart."""
-    dt, dr = T_a.distance_to(T_b)
-    px = np.deg2rad(dr) * camera.fx + dt * camera.fx / 1.5
-    return int(np.clip(np.ceil(px), 1, max_samples))
+    return int(np.clip(np.ceil(blur_length_px(camera, T_a, T_b)), 1, max_samples))
 
 
 def develop(radiance: np.ndarray, gain: float, model: SensorModel, rng: np.random.Generator) -> np.ndarray:

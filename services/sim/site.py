@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.geometry.blur import motion_blur
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write_text
@@ -30,7 +31,7 @@ from services.sim.lidar import LidarConfig, scan_exposure, simulate_station
 from services.sim.materials import linear_to_srgb
 from services.sim.mesh import Mesh
 from services.sim.scenes import Lighting, Scene, make_scene
-from services.sim.sensor import AutoExposure, SensorModel, blur_samples, develop, motion_blur
+from services.sim.sensor import AutoExposure, SensorModel, blur_samples, develop
 from services.sim.shading import SceneRenderer
 from services.sim.walk import make_walk
 
