@@ -35,7 +35,7 @@ import numpy as np
 
 from services.features.matching import mutual_nn
 from services.features.xfeat import Features, XFeatExtractor
-from services.geometry.blur import blur_length_px, exposure_poses, motion_blur
+from services.geometry.blur import blur_length_px, motion_blur_linear
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
@@ -206,7 +206,11 @@ class RenderMatchTracker:
         n = int(np.clip(np.ceil(self._blur_px(fr, exposure_s) * kf.scale), 2, 10))
         t0 = time.perf_counter()
         r = kf.render
-        img = motion_blur(r.rgb, r.depth_filled, r.camera, kf.T_wc, exposure_poses(kf.T_wc, D, dt, exposure_s, n))
+        half = 0.5 * (1 - 1 / n) * exposure_s / dt  # first and last of n samples spread over the exposure
+        ident = Pose.identity()
+        gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)  # XFeat sees grey anyway: a third of the warping
+        img = motion_blur_linear(gray, r.depth_filled, r.camera, kf.T_wc, kf.T_wc @ ident.interpolate(D, -half),
+                                 kf.T_wc @ ident.interpolate(D, half), n)
         fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         return self._points(r, np.clip(img + 0.5, 0, 255).astype(np.uint8), fr.tm)
 
@@ -226,12 +230,16 @@ class RenderMatchTracker:
         fr.tm["pose_ms"] = fr.tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
         return r
 
-    def _match(self, kf: Keyframe, fr: _Frame, initial: Pose | None) -> PnpResult | None:
-        """Match the frame against a keyframe, blurred like the frame when it moves fast."""
+    def _match(self, kf: Keyframe, fr: _Frame, initial: Pose | None, fresh: bool = False) -> PnpResult | None:
+        """Match the frame against a keyframe, blurred like the frame when it moves fast.
+
+        ``fresh``: the keyframe was rendered for this frame, so blur, not viewpoint, dominates what the
+        exposure candidates change: only such frames calibrate the exposure.
+        """
         live = self._live(fr, kf.scale)
         px = self._base_scale(fr.camera) / kf.scale
         exposure = fr.exposure_s or self.exposure_s
-        calibrate = (fr.exposure_s is None and self.cfg.exposure_s is None and fr.motion is not None
+        calibrate = (fresh and fr.exposure_s is None and self.cfg.exposure_s is None and fr.motion is not None
                      and len(self.calib_intervals) < self.cfg.calib_frames
                      and self._blur_px(fr, fr.motion[1]) >= self.cfg.calib_min_px)
         if calibrate:  # try every exposure candidate; the frame keeps the best pose, the scores accumulate
@@ -269,7 +277,7 @@ class RenderMatchTracker:
         r = None
         for _ in range(rounds):
             kf = self._keyframe(T, fr)
-            r = self._match(kf, fr, T)
+            r = self._match(kf, fr, T, fresh=True)
             if not self._good(r):
                 return None
             kf.ref_inliers = r.n_inliers

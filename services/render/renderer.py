@@ -73,7 +73,12 @@ def _device(device: str | None) -> torch.device:
 
 
 class Renderer:
-    def __init__(self, scan: Scan, cfg: RenderConfig = RenderConfig(), device: str | None = None, holefill: bool = True):
+    def __init__(self, scan: Scan, cfg: RenderConfig = RenderConfig(), device: str | None = None, holefill: bool = True,
+                 stage: str | None = None):
+        """``stage``: what ``render`` produces by default: "full" (with hole filling), "filter" or "splat" (ablations)."""
+        if stage is not None and stage not in STAGES:
+            raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+        self.stage = stage or ("full" if holefill else "filter")
         self.cfg = cfg
         self.device = _device(device)
         self.origin = scan.origin.copy()
@@ -85,7 +90,7 @@ class Renderer:
         else:
             self.cloud = prepare_cloud(scan)
         log.info("renderer: %d points prepared on %s in %.2f s", len(scan), self.device, time.perf_counter() - t0)
-        self.net = load_holefill(cfg.weights, self.device) if holefill else None
+        self.net = load_holefill(cfg.weights, self.device) if holefill and self.stage == "full" else None
         self.holefill_scale = cfg.holefill_scale or (1.0 if self.device.type == "cuda" else 0.5)
 
     # ---- stages ----------------------------------------------------------
@@ -99,8 +104,9 @@ class Renderer:
         return torch.from_numpy(r.rgb), torch.from_numpy(r.depth)
 
     @torch.no_grad()
-    def render(self, T_wc: Pose, camera: Camera, stage: str = "full") -> Render:
+    def render(self, T_wc: Pose, camera: Camera, stage: str | None = None) -> Render:
         """Render the scan from camera-to-world ``T_wc`` with ``camera``'s intrinsics and distortion."""
+        stage = stage or self.stage
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         if stage == "full" and self.net is None:
@@ -144,11 +150,11 @@ class Renderer:
         up = F.interpolate(filled, size=(H, W), mode="bilinear", align_corners=False)
         return mask * rgb01 + (1 - mask) * up
 
-    def render_batch(self, poses: list[Pose], camera: Camera, stage: str = "full") -> list[Render]:
+    def render_batch(self, poses: list[Pose], camera: Camera, stage: str | None = None) -> list[Render]:
         """Several views with the same intrinsics (cubemaps, many clients). Shares the prepared scan."""
         return [self.render(T, camera, stage) for T in poses]
 
-    def cubemap(self, position: np.ndarray, size: int = 256, stage: str = "full") -> list[Render]:
+    def cubemap(self, position: np.ndarray, size: int = 256, stage: str | None = None) -> list[Render]:
         """Six 90-degree faces around ``position`` (world), each a ``size`` x ``size`` pinhole view."""
         cam = Camera(size, size, size / 2.0, size / 2.0, (size - 1) / 2.0, (size - 1) / 2.0)
         return self.render_batch(cubemap_poses(position), cam, stage)
