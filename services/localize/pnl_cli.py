@@ -40,6 +40,10 @@ def run_localize_pnl(args) -> int:
     map_dir = Path(args.map or args.scan)
     if not (map_dir / MAP_FILE).exists() and not (map_dir.is_file() and map_dir.suffix == ".msg"):
         raise CliError(f"--method pnl needs --map MAPDIR (a folder with {MAP_FILE} from 'cristal prebuild'); {map_dir} has none")
+    if getattr(args, "threads", None):
+        import cv2
+
+        cv2.setNumThreads(int(args.threads))  # -j 1: the one-core figure of benchmarks/RESULTS.md
     seq = open_sequence(args.sequence)
     loc = PnlLocalizer.load(map_dir, PnlConfig())
     n = min(len(seq), args.frames or len(seq))
