@@ -43,7 +43,8 @@ def test_database_roundtrip_and_positions_in_free_space(rm_setup, small_site):
 def test_tracks_a_short_sequence_from_no_prior(rm_setup):
     renderer, ext, db, seq, _ = rm_setup
     tr = RenderMatchTracker(renderer, ext, db)
-    results = [tr.process(seq.read(i).image, seq.camera) for i in range(len(seq))]
+    frames = [seq.read(i) for i in range(len(seq))]
+    results = [tr.process(f.image, seq.camera, stamp=float(f.stamp)) for f in frames]
     assert results[0].status == Status.RELOCALIZED  # the first frame has no prior pose
     ok = [(i, r) for i, r in enumerate(results) if r.T_wc is not None]
     assert len(ok) >= len(seq) - 1
@@ -84,3 +85,57 @@ def test_localize_cli_writes_tum_and_reports_ape(rm_setup, small_site, tmp_path,
     assert set(traj.stamps) <= set(seq.stamps[:6])
     assert main(["localize", str(out / "scan.ply"), str(out / "seq_00"), "--db", str(tmp_path / "missing.npz"),
                  "--out", str(tmp_path / "x.txt")]) == 2
+
+
+def test_reacquires_at_the_last_good_pose_after_lost_without_a_database(rm_setup):
+    renderer, ext, _, seq, _ = rm_setup
+    tr = RenderMatchTracker(renderer, ext, db=None)
+    f0 = seq.read(0)
+    assert tr.process(f0.image, seq.camera, prior=seq.groundtruth.poses[0], stamp=float(f0.stamp)).T_wc is not None
+    grey = np.full_like(f0.image, 128)
+    assert tr.process(grey, seq.camera, stamp=float(seq.read(1).stamp)).status == Status.LOST
+    assert tr.T_last is None and tr.recent is not None
+    f2 = seq.read(2)
+    r = tr.process(f2.image, seq.camera, stamp=float(f2.stamp))
+    assert r.status == Status.RELOCALIZED  # no database: only the kept pose can have brought it back
+    dt, dr = seq.groundtruth.poses[2].distance_to(r.T_wc)
+    assert dt < 0.05 and dr < 1.0
+    # a reset forgets the kept pose: with no database the next frame stays LOST
+    tr.reset()
+    assert tr.process(f2.image, seq.camera).status == Status.LOST
+
+
+def test_blurs_keyframes_with_the_given_exposure_and_stays_accurate(rm_setup):
+    renderer, ext, _, seq, _ = rm_setup
+    from services.localize.render_match import RMConfig
+
+    tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(exposure_s=0.03, blur_min_px=0.5))
+    blurred, errs = 0, []
+    for i in range(len(seq)):
+        f = seq.read(i)
+        r = tr.process(f.image, seq.camera, prior=seq.groundtruth.poses[0] if i == 0 else None, stamp=float(f.stamp))
+        assert r.T_wc is not None, i
+        blurred += r.blur_px > 0.5
+        errs.append(seq.groundtruth.poses[i].distance_to(r.T_wc))
+    assert blurred >= 3 and tr.exposure_s == 0.03
+    assert np.sqrt((np.array(errs)[:, 0] ** 2).mean()) < 0.05
+
+
+def test_sparse_scan_renders_coarser_keyframes(rm_setup):
+    from services.io.decimate import random_decimate
+    from services.io.scans import load_scan
+    from services.localize.render_match import _Frame
+    from services.render.renderer import Renderer
+
+    renderer, ext, _, seq, _ = rm_setup
+    sparse = Renderer(random_decimate(load_scan(renderer_scan_path(seq)), 0.03))
+    tr = RenderMatchTracker(sparse, ext)
+    T = seq.groundtruth.poses[0]
+    kf = tr._keyframe(T, _Frame(seq.read(0).image, seq.camera, {}, None, 0.0, None))
+    full_res_holes = sparse.render(T, seq.camera).hole_fraction
+    assert full_res_holes > tr.cfg.max_holes
+    assert kf.scale < tr._base_scale(seq.camera) and kf.render.hole_fraction < full_res_holes - 0.1
+
+
+def renderer_scan_path(seq):
+    return seq.root.parent / "scan.ply"

@@ -188,7 +188,7 @@ class RenderMatchTracker:
             t0 = time.perf_counter()
             r = self.renderer.render(T_wc, cam)
             fr.tm["render_ms"] = fr.tm.get("render_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
-            if r.hole_fraction <= self.cfg.max_holes or level == self.cfg.coarse_levels or min(cam.width, cam.height) < 160:
+            if r.hole_fraction <= self.cfg.max_holes or level == self.cfg.coarse_levels or min(cam.width, cam.height) < 128:
                 break
             s /= 2
         feats, xyz = self._points(r, r.rgb, fr.tm)
