@@ -36,9 +36,9 @@ from services.render.renderer import Renderer  # noqa: E402
 STAGE_NAMES = {"full": "full (filter + U-Net)", "filter": "splat + filter", "splat": "splat only"}
 
 
-def run(scan, seq, stage: str, frames: int, max_side: int) -> dict:
+def run(scan, seq, stage: str, frames: int, max_side: int, top_k: int) -> dict:
     renderer = Renderer(scan, stage=stage)
-    ext = XFeatExtractor(device="cpu", top_k=1024, max_side=max_side)
+    ext = XFeatExtractor(device="cpu", top_k=top_k, max_side=max_side)
     t0 = time.perf_counter()
     db = build_database(renderer, sample_positions(scan), ext)
     db_s = time.perf_counter() - t0
@@ -69,7 +69,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, help="only the first N frames")
     ap.add_argument("--stages", nargs="+", default=["full"], choices=list(STAGE_NAMES))
     ap.add_argument("--decimations", type=float, nargs="+", default=[1.0], help="fractions of the scan's points kept")
-    ap.add_argument("--max-side", type=int, default=480, help="XFeat input size on the CPU")
+    ap.add_argument("--max-side", type=int, default=480, help="XFeat input size on the CPU (0: full frame)")
+    ap.add_argument("--top-k", type=int, default=1024, help="XFeat keypoints per image")
     ap.add_argument("-j", "--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -78,7 +79,7 @@ def main() -> None:
     seq = open_sequence(site / args.sequence)
     frames = min(len(seq), args.frames or len(seq))
     print(f"{site}/{args.sequence}: {frames} frames {seq.camera.width}x{seq.camera.height}, scan {len(full):,} points, "
-          f"torch threads {args.threads}")
+          f"torch threads {args.threads}, XFeat top-{args.top_k} at {args.max_side or 'full'} px")
     cols = ["render_ms", "features_ms", "kf_features_ms", "blur_ms", "match_ms", "pose_ms", "relocalize_ms", "total_ms"]
     print("| points | renderer | localized | reloc | APE t cm | APE r deg | FPS | " + " | ".join(c[:-3] for c in cols)
           + " | DB views / s | exposure ms |")
@@ -86,7 +87,7 @@ def main() -> None:
     for frac in args.decimations:
         scan = full if frac >= 1.0 else random_decimate(full, frac)
         for stage in args.stages:
-            r = run(scan, seq, stage, frames, args.max_side)
+            r = run(scan, seq, stage, frames, args.max_side or None, args.top_k)
             print(f"| {len(scan):,} ({100 * frac:.0f} %) | {STAGE_NAMES[stage]} | {r['localized']}/{r['frames']} "
                   f"({100 * r['localized'] / r['frames']:.1f} %) | {r['reloc']} | {r['t_cm']:.2f} | {r['r_deg']:.3f} | "
                   f"{r['fps']:.1f} | " + " | ".join(f"{r.get(c, 0.0):.1f}" for c in cols)
