@@ -64,6 +64,7 @@ class PnlConfig:
     ratio: float = 0.9  # best / second best distance
     local_radius_m: float = 4.0  # keyframes within this distance of the predicted camera give the local landmarks
     reloc_ratio: float = 0.8
+    reloc_keypoints: int = 600  # strongest keypoints matched against every landmark
     reloc_max_hamming: int = 64
     reloc_keyframes: int = 4  # best-voted keyframes tried
     reloc_ransac_px: float = 4.0
@@ -481,11 +482,13 @@ class PnlLocalizer:
         idx, cfg = self.idx, self.cfg
         if len(fr.feats) < 10 or len(idx._reloc_rows) < 10:
             return None
-        knn = idx._bf.knnMatch(fr.feats.desc, idx.desc[idx._reloc_rows], k=2)
+        # the strongest keypoints only: the kNN against every landmark is the cost of a relocalization
+        qsel = np.argsort(-fr.feats.responses)[: cfg.reloc_keypoints]
+        knn = idx._bf.knnMatch(fr.feats.desc[qsel], idx.desc[idx._reloc_rows], k=2)
         q, trn = [], []
         for mm in knn:
             if len(mm) == 2 and mm[0].distance <= cfg.reloc_max_hamming and mm[0].distance < cfg.reloc_ratio * mm[1].distance:
-                q.append(mm[0].queryIdx)
+                q.append(int(qsel[mm[0].queryIdx]))
                 trn.append(mm[0].trainIdx)
         tm["reloc_match_ms"] = 1e3 * (time.perf_counter() - t0)
         if len(q) < cfg.reloc_min_inliers:
