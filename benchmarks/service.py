@@ -158,12 +158,9 @@ def main() -> int:
                             "--listen", f"tcp/127.0.0.1:{port}", "--server-id", "bench", "--device", a.device,
                             "--max-clients", "64"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
     try:
-        while True:  # "serving ..." once it answers (log lines may come first)
-            line = srv.stdout.readline()
-            if not line:
-                raise SystemExit("server did not start")
-            if line.startswith("serving"):
-                break
+        line = srv.stdout.readline()  # stdout's first line, "serving ...", once it answers (logs go to stderr)
+        if not line.startswith("serving"):
+            raise SystemExit(f"server did not start: {line!r}")
         threading.Thread(target=srv.stdout.read, daemon=True).start()  # keep the pipe drained
         # warm-up: the first frames compile kernels and relocalize
         run_clients(port, 1, 3.0, 5.0, frames, intr, "bench")
