@@ -157,10 +157,7 @@ class RenderMatchTracker:
             return self.cfg.exposure_s
         if not self.calib_intervals:
             return None
-        best = int(np.argmax(self.calib_scores))
-        if self.calib_scores[best] < 1.02 * self.calib_scores[0]:  # blur does not clearly help: keep renders sharp
-            return 0.0
-        return float(self.cfg.calib_fractions[best] * np.median(self.calib_intervals))
+        return float(self.cfg.calib_fractions[int(np.argmax(self.calib_scores))] * np.median(self.calib_intervals))
 
     # ---- pieces --------------------------------------------------------------
     def _base_scale(self, camera: Camera) -> float:
