@@ -30,17 +30,17 @@ from services.io.sequence import open_sequence  # noqa: E402
 from services.io.trajectory import Trajectory  # noqa: E402
 from services.localize.render_match import RenderMatchTracker, Status  # noqa: E402
 from services.relocalize.database import build_database  # noqa: E402
-from services.relocalize.roi import sample_positions  # noqa: E402
+from services.relocalize.roi import RoiConfig, sample_positions  # noqa: E402
 from services.render.renderer import Renderer  # noqa: E402
 
 STAGE_NAMES = {"full": "full (filter + U-Net)", "filter": "splat + filter", "splat": "splat only"}
 
 
-def run(scan, seq, stage: str, frames: int, max_side: int, top_k: int) -> dict:
+def run(scan, seq, stage: str, frames: int, max_side: int, top_k: int, spacing: float) -> dict:
     renderer = Renderer(scan, stage=stage)
     ext = XFeatExtractor(device="cpu", top_k=top_k, max_side=max_side)
     t0 = time.perf_counter()
-    db = build_database(renderer, sample_positions(scan), ext)
+    db = build_database(renderer, sample_positions(scan, RoiConfig(spacing=spacing)), ext)
     db_s = time.perf_counter() - t0
     tracker = RenderMatchTracker(renderer, ext, db)
     traj, counts, stage_ms = Trajectory(), {s: 0 for s in Status}, {}
@@ -71,6 +71,7 @@ def main() -> None:
     ap.add_argument("--decimations", type=float, nargs="+", default=[1.0], help="fractions of the scan's points kept")
     ap.add_argument("--max-side", type=int, default=480, help="XFeat input size on the CPU (0: full frame)")
     ap.add_argument("--top-k", type=int, default=1024, help="XFeat keypoints per image")
+    ap.add_argument("--spacing", type=float, default=1.0, help="relocalization database grid (m)")
     ap.add_argument("-j", "--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -87,7 +88,7 @@ def main() -> None:
     for frac in args.decimations:
         scan = full if frac >= 1.0 else random_decimate(full, frac)
         for stage in args.stages:
-            r = run(scan, seq, stage, frames, args.max_side or None, args.top_k)
+            r = run(scan, seq, stage, frames, args.max_side or None, args.top_k, args.spacing)
             print(f"| {len(scan):,} ({100 * frac:.0f} %) | {STAGE_NAMES[stage]} | {r['localized']}/{r['frames']} "
                   f"({100 * r['localized'] / r['frames']:.1f} %) | {r['reloc']} | {r['t_cm']:.2f} | {r['r_deg']:.3f} | "
                   f"{r['fps']:.1f} | " + " | ".join(f"{r.get(c, 0.0):.1f}" for c in cols)
