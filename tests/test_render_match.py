@@ -139,3 +139,20 @@ def test_sparse_scan_renders_coarser_keyframes(rm_setup):
 
 def renderer_scan_path(seq):
     return seq.root.parent / "scan.ply"
+
+
+def test_region_of_interest_polygon_and_box(small_site):
+    from services.io.scans import load_scan
+    from services.relocalize.roi import RoiConfig, sample_positions
+
+    out, _, _ = small_site
+    scan = load_scan(out / "scan.ply")
+    everywhere = sample_positions(scan, RoiConfig(spacing=1.0))
+    first_room = sample_positions(scan, RoiConfig(spacing=1.0, polygon=((0, 0), (6, 0), (6, 5), (0, 5))))
+    assert 0 < len(first_room) < len(everywhere)
+    assert (first_room[:, 0] <= 6).all() and (first_room[:, 1] <= 5).all()
+    assert np.isin(first_room.round(6), everywhere.round(6)).all()  # the same grid, restricted
+    with pytest.raises(ValueError, match="box"):
+        RoiConfig(box=(0, 0, 2, 5, 5, 1))
+    with pytest.raises(ValueError, match="3 vertices"):
+        RoiConfig(polygon=((0, 0), (1, 1)))

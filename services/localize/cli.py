@@ -9,6 +9,7 @@ examples:
   cristal build-db site/scan.ply --out site/reloc.npz                      region of interest derived from the scan
   cristal build-db scan.e57 --out db.npz --spacing 2 --heights 1.2 1.7     coarser grid, two camera heights
   cristal build-db scan.ply --out db.npz --roi 0 0 0.5 12 5 2.5            an explicit box (world x0 y0 z0 x1 y1 z1)
+  cristal build-db scan.ply --out db.npz --roi-polygon 0,0 6,0 6,5 0,5       a floor-plan outline (heights above the floor)
 
 Renders a cubemap (4 horizontal faces, or --faces all) with the neural renderer at each position
 in free space, extracts XFeat features with the scan's 3D points behind them, and writes the
@@ -37,6 +38,8 @@ def register(sub) -> None:
     b.add_argument("--heights", type=float, nargs="+", default=[1.5], help="camera heights above the floor (default 1.5)")
     b.add_argument("--margin", type=float, default=0.5, help="free space around each position in metres (default 0.5)")
     b.add_argument("--roi", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"), help="box in world coordinates")
+    b.add_argument("--roi-polygon", nargs="+", metavar="X,Y",
+                   help="floor-plan outline in world x,y (>= 3 vertices); positions at --heights above the floor inside it")
     b.add_argument("--face-size", type=int, default=320)
     b.add_argument("--faces", choices=["horizontal", "all"], default="horizontal")
     b.add_argument("--device", default="auto")
@@ -66,6 +69,15 @@ def _torch_threads() -> None:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))  # 1 unless -j: faster on a loaded 2-core box
 
 
+def _polygon(vertices: list[str]) -> tuple[tuple[float, float], ...]:
+    from services.cli import CliError
+
+    try:
+        return tuple((float(v.split(",")[0]), float(v.split(",")[1])) for v in vertices)
+    except (ValueError, IndexError):
+        raise CliError(f"--roi-polygon: expected vertices as X,Y (e.g. 0,0 12,0 12,5 0,5), got {' '.join(vertices)}") from None
+
+
 def run_build_db(args) -> int:
     from services.cli import emit_summary
     from services.features.xfeat import XFeatExtractor
@@ -77,7 +89,8 @@ def run_build_db(args) -> int:
     _torch_threads()
     scan = load_scan(args.scan)
     pos = sample_positions(scan, RoiConfig(spacing=args.spacing, heights=tuple(args.heights), margin=args.margin,
-                                           box=tuple(args.roi) if args.roi else None))
+                                           box=tuple(args.roi) if args.roi else None,
+                                           polygon=_polygon(args.roi_polygon) if args.roi_polygon else None))
     if len(pos) == 0:
         raise ValueError("no position in free space inside the region of interest: check --roi, --heights, --margin")
     renderer = Renderer(scan, device=args.device)

@@ -4,8 +4,8 @@ Default region: derived from the scan itself. A grid of (x, y) positions at ``sp
 scan's footprint; at each, the floor is the lowest scan point nearby and the candidate sits at
 typical camera heights above it; a candidate is kept when it is at least ``margin`` from every
 scan point (free space) and, when the scan knows its stations, in the line of sight of one (so
-it is inside scanned space, not inside a closed cabinet). A box (and height range) may be given
-instead. Shared by the relocalization database and the Prebuild & Localize map builder.
+it is inside scanned space, not inside a closed cabinet). A box (x, y, z ranges) or a polygon (a
+floor-plan outline in world x, y; heights still above the local floor) may restrict it. Shared by the relocalization database and the Prebuild & Localize map builder.
 """
 
 from __future__ import annotations
@@ -28,6 +28,15 @@ class RoiConfig:
     heights: tuple[float, ...] = (1.5,)  # above the local floor
     margin: float = 0.5  # free space around each position
     box: tuple[float, float, float, float, float, float] | None = None  # x0 y0 z0 x1 y1 z1 (world); heights ignored
+    polygon: tuple[tuple[float, float], ...] | None = None  # floor-plan outline (world x, y), >= 3 vertices
+
+    def __post_init__(self) -> None:
+        if self.spacing <= 0 or self.margin < 0:
+            raise ValueError(f"spacing must be > 0 and margin >= 0 (got {self.spacing}, {self.margin})")
+        if self.box is not None and not all(a < b for a, b in zip(self.box[:3], self.box[3:])):
+            raise ValueError(f"box {self.box}: each of x0 y0 z0 must be below x1 y1 z1")
+        if self.polygon is not None and len(self.polygon) < 3:
+            raise ValueError("a polygon needs at least 3 vertices")
 
 
 def _voxel_points(scan: Scan, voxel: float = 0.05, max_points: int = 2_000_000) -> np.ndarray:
@@ -70,6 +79,12 @@ def sample_positions(scan: Scan, cfg: RoiConfig = RoiConfig()) -> np.ndarray:
                     continue
                 cand += [(x, y, z0 + h) for h in cfg.heights]
     cand = np.asarray(cand, float).reshape(-1, 3)
+    if cfg.polygon is not None and len(cand):
+        import cv2
+
+        poly = (np.asarray(cfg.polygon, np.float64) - scan.origin[:2]).astype(np.float32).reshape(-1, 1, 2)
+        inside = [cv2.pointPolygonTest(poly, (float(x), float(y)), False) >= 0 for x, y in cand[:, :2]]
+        cand = cand[np.asarray(inside, bool)]
     if len(cand) == 0:
         return cand
     d, _ = tree.query(cand)
