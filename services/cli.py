@@ -30,7 +30,7 @@ COMMANDS = [
 
 EPILOG = """\
 typical session:
-  cristal demo --out runs/demo                 simulate a site and score a trajectory (the README's main job)
+  cristal demo --out runs/demo                 the whole loop: simulate, build, serve + stream over Zenoh, score
   cristal sim --preset office --seed 1 --out site/   a simulated scene: scan.ply + camera sequences with ground truth
   cristal scan info site/scan.ply              points, bounds, origin, colours, load time
   cristal eval site/seq_0/groundtruth.txt est.txt   APE (no alignment and SE(3)), plots
