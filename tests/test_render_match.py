@@ -156,3 +156,20 @@ def test_region_of_interest_polygon_and_box(small_site):
         RoiConfig(box=(0, 0, 2, 5, 5, 1))
     with pytest.raises(ValueError, match="3 vertices"):
         RoiConfig(polygon=((0, 0), (1, 1)))
+
+
+def test_relocalization_refuses_an_ambiguous_place(rm_setup):
+    """A site made of two identical copies 10 m apart: the same frame fits both, so no pose is given."""
+    from services.relocalize.database import RelocDB
+
+    renderer, ext, db, seq, _ = rm_setup
+    feats = ext.extract(seq.read(7).image)
+    r, _ = db.localize(feats, seq.camera, min_inliers=20)
+    assert r is not None  # the real site: one place
+    shift = np.array([10.0, 0.0, 0.0])
+    twin = RelocDB(np.concatenate([db.view_poses, db.view_poses + np.r_[shift, 0, 0, 0, 0]]),
+                   np.concatenate([db.view_start, db.view_start[1:] + db.view_start[-1]]),
+                   np.concatenate([db.xyz, db.xyz + shift]), np.concatenate([db.desc, db.desc]),
+                   np.concatenate([db.vlad, db.vlad]), db.vocab, dict(db.meta))
+    r2, _ = twin.localize(feats, seq.camera, k=16, min_inliers=20)
+    assert r2 is None

@@ -84,17 +84,32 @@ class RelocDB:
         return np.argsort(-sim)[:k]
 
     def localize(self, feats: Features, camera: Camera, k: int = 8, min_inliers: int = 30,
-                 max_error_px: float = 3.0) -> tuple[PnpResult | None, int]:
-        """Coarse pose of a query: match against the top-``k`` views, PnP-RANSAC; best by inliers. Returns (result, view)."""
-        best, best_view = None, -1
+                 max_error_px: float = 3.0, ambiguity: float = 0.8) -> tuple[PnpResult | None, int]:
+        """Coarse pose of a query: match against the top-``k`` views, PnP-RANSAC; best by inliers. Returns (result, view).
+
+        Repetitive sites (identical rack aisles, office floors) give several self-consistent poses at
+        different places. When a pose more than 1 m or 20 degrees away from the best one has at least
+        ``ambiguity`` times its inliers, the place is ambiguous and the answer is None, not a coin toss.
+        """
+        results = []
         for v in self.candidates(feats, k):
             xyz, desc = self.view(v)
             m = mutual_nn(feats.desc, desc, min_cos=0.8)
             if len(m) < min_inliers:
                 continue
             r = solve_pnp(feats.kpts[m[:, 0]], xyz[m[:, 1]], camera, max_error_px=max_error_px)
-            if r is not None and r.n_inliers >= min_inliers and (best is None or r.n_inliers > best.n_inliers):
-                best, best_view = r, int(v)
+            if r is not None and r.n_inliers >= min_inliers:
+                results.append((r, int(v)))
+        if not results:
+            return None, -1
+        results.sort(key=lambda rv: -rv[0].n_inliers)
+        best, best_view = results[0]
+        for r, v in results[1:]:
+            dt, dr = best.T_wc.distance_to(r.T_wc)
+            if (dt > 1.0 or dr > 20.0) and r.n_inliers >= ambiguity * best.n_inliers:
+                log.info("relocalization ambiguous: %d inliers at view %d and %d at view %d, %.1f m / %.0f deg apart",
+                         best.n_inliers, best_view, r.n_inliers, v, dt, dr)
+                return None, -1
         return best, best_view
 
     # ---- storage -----------------------------------------------------------
