@@ -347,6 +347,8 @@ class PnlLocalizer:
         second[has2] = hd[fi[has2] + 1]
         good = (best_hd <= cfg.max_hamming) & (best_hd < cfg.ratio * second)
         fi = fi[good]
+        if len(fi) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), visible
         lm_i, kp_i, d_i = li[fi], kp[fi], hd[fi]
         # one landmark per keypoint: the closest descriptor
         o = np.lexsort((d_i, kp_i))
