@@ -111,6 +111,11 @@ def test_localizer_api_seed_and_lost_on_blank_frame(pnl_site, pnl_map):
     assert r.status == Status.TRACKING and r.inliers >= PnlConfig().min_inliers
     dt, dr = gt.distance_to(r.T_wc)
     assert dt < 0.05 and dr < 1.0
+    # a frame full of keypoints that match nothing, at a good prior: LOST, no exception
+    noise = np.random.default_rng(0).integers(0, 256, (cam.height, cam.width), dtype=np.uint8)
+    loc.reset()
+    r = loc.process(noise, cam, prior=gt)
+    assert r.status == Status.LOST and r.T_wc is None
     loc.reset()
     assert loc.T_last is None
     import copy
