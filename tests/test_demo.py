@@ -19,6 +19,7 @@ from _zenoh import cristal, endpoint, free_port, stop, summary
 pytestmark = pytest.mark.timeout(240)
 
 SPACING = ["--db-spacing", "1.5", "--map-spacing", "1.5"]
+DEADLINE = ["--deadline", "10000"]  # the loop, not the timing, is under test here (a loaded CI box is slow)
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +30,7 @@ def demo_run(small_site, tmp_path_factory):
     out = tmp_path_factory.mktemp("demo") / "out"
     o, e = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(o), contextlib.redirect_stderr(e):
-        rc = main(["demo", "--site", str(small_site[0]), "--out", str(out), "--frames", "6", *SPACING])
+        rc = main(["demo", "--site", str(small_site[0]), "--out", str(out), "--frames", "6", *SPACING, *DEADLINE])
     assert rc == 0, o.getvalue() + e.getvalue()
     return out, o.getvalue().strip().splitlines(), e.getvalue()
 

@@ -83,7 +83,24 @@ class RMBackend:
         if max_side is None:
             max_side = None if renderer.device.type == "cuda" else 480
         ext = XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side)
-        return cls(scan, renderer, ext, db)
+        backend = cls(scan, renderer, ext, db)
+        backend.warm_up()
+        return backend
+
+    def warm_up(self) -> None:
+        """One render, XFeat pass and pose solve before serving: the first client's first frame must not pay for
+        JIT compilation, kernel selection and lazy imports (measured: > 1 s, a missed deadline, in a fresh process)."""
+        import time
+
+        from services.geometry.camera import Camera
+
+        t0 = time.perf_counter()
+        T = self.db.view_pose(0) if self.db is not None and self.db.n_views else Pose.identity()
+        cam = Camera.from_fov(320, 240, 60.0)
+        tr = _RMTracker(self)
+        r = self.renderer.render(T, cam)
+        tr.t.process(r.rgb, cam, prior=T, stamp=0.0)
+        log.info("backend warm in %.2f s", time.perf_counter() - t0)
 
     def new_tracker(self) -> _RMTracker:
         return _RMTracker(self)
