@@ -89,7 +89,9 @@ def solve_pnp(uv: np.ndarray, X_w: np.ndarray, camera: Camera, max_error_px: flo
     uvu = undistort_pixels(camera, uv) if camera.is_distorted else uv
     cam = {"model": "PINHOLE", "width": camera.width, "height": camera.height,
            "params": [camera.fx, camera.fy, camera.cx, camera.cy]}
-    ransac = {"max_reproj_error": float(max_error_px), "max_iterations": int(max_iterations), "success_prob": 0.9999}
+    # poselib runs at least min_iterations (default 1000) even when the inlier ratio says 70 suffice
+    ransac = {"max_reproj_error": float(max_error_px), "max_iterations": int(max_iterations), "min_iterations": 50,
+              "success_prob": 0.9999}
     bundle = {"loss_type": "CAUCHY", "loss_scale": float(max_error_px) * 0.5, "max_iterations": 50}
     kw = {}
     if initial is not None:

@@ -66,11 +66,11 @@ class RMConfig:
     edge_window: int = 5  # pixels: a keypoint's depth must be smooth over this window of the render ...
     edge_rel_depth: float = 0.05  # ... within this fraction of its depth (rejects depth edges); 0 = off
     exposure_s: float | None = None  # camera exposure time; None: per frame from the caller, else calibrated
-    blur_min_px: float = 3.0  # blur the keyframe render when the frame's predicted blur exceeds this (frame pixels)
+    blur_min_px: float = 6.0  # blur the keyframe render when the frame's predicted blur exceeds this (frame pixels)
     calib_min_px: float = 10.0  # frames moving at least this much per frame interval calibrate the exposure ...
     calib_frames: int = 8  # ... until this many have
     calib_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)  # exposure candidates, x frame interval
-    overlap: bool = True  # render / blur the keyframe on a second thread while XFeat runs on the live frame
+    overlap: bool = False  # render / blur the keyframe on a second thread while XFeat runs on the live frame (no gain measured on 2 cores; off: reproducible)
 
 
 @dataclass
