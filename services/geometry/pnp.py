@@ -78,7 +78,7 @@ def undistort_pixels(camera: Camera, uv: np.ndarray) -> np.ndarray:
 
 
 def solve_pnp(uv: np.ndarray, X_w: np.ndarray, camera: Camera, max_error_px: float = 2.0, min_points: int = 6,
-              max_iterations: int = 2000, initial: Pose | None = None) -> PnpResult | None:
+              max_iterations: int = 2000, initial: Pose | None = None, min_iterations: int = 1000) -> PnpResult | None:
     """RANSAC-PnP (P3P minimal solver, local optimisation, final Cauchy-loss refinement on inliers)."""
     import poselib
 
@@ -89,8 +89,10 @@ def solve_pnp(uv: np.ndarray, X_w: np.ndarray, camera: Camera, max_error_px: flo
     uvu = undistort_pixels(camera, uv) if camera.is_distorted else uv
     cam = {"model": "PINHOLE", "width": camera.width, "height": camera.height,
            "params": [camera.fx, camera.fy, camera.cx, camera.cy]}
-    # poselib runs at least min_iterations (default 1000) even when the inlier ratio says 70 suffice
-    ransac = {"max_reproj_error": float(max_error_px), "max_iterations": int(max_iterations), "min_iterations": 50,
+    # min_iterations: poselib's default 1000 even when the inlier ratio says 70 suffice; tracking with
+    # many inliers can stop early (4.5 -> 1.2 ms on 300 matches), hard relocalizations gain from the rest
+    ransac = {"max_reproj_error": float(max_error_px), "max_iterations": int(max_iterations),
+              "min_iterations": int(min(min_iterations, max_iterations)),
               "success_prob": 0.9999}
     bundle = {"loss_type": "CAUCHY", "loss_scale": float(max_error_px) * 0.5, "max_iterations": 50}
     kw = {}

@@ -70,6 +70,7 @@ class RMConfig:
     calib_min_px: float = 10.0  # frames moving at least this much per frame interval calibrate the exposure ...
     calib_frames: int = 8  # ... until this many have
     calib_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)  # exposure candidates, x frame interval
+    ransac_min_iterations: int = 100  # while tracking (relocalization keeps poselib's 1000)
     overlap: bool = False  # render / blur the keyframe on a second thread while XFeat runs on the live frame (no gain measured on 2 cores; off: reproducible)
 
 
@@ -123,6 +124,7 @@ class _Frame:
     dt_next: float  # seconds since the last localized frame
     exposure_s: float | None
     live: dict = field(default_factory=dict)  # scale -> Features
+    relocalizing: bool = False
 
 
 class RenderMatchTracker:
@@ -226,7 +228,8 @@ class RenderMatchTracker:
         t1 = time.perf_counter()
         r = None
         if len(m) >= 6:
-            r = solve_pnp(live.kpts[m[:, 0]], xyz[m[:, 1]], fr.camera, self.cfg.ransac_px * px_factor, initial=initial)
+            r = solve_pnp(live.kpts[m[:, 0]], xyz[m[:, 1]], fr.camera, self.cfg.ransac_px * px_factor, initial=initial,
+                          min_iterations=1000 if fr.relocalizing else self.cfg.ransac_min_iterations)
             if r is not None:
                 r.px_factor = px_factor  # read by _good
         fr.tm["match_ms"] = fr.tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
@@ -349,7 +352,7 @@ class RenderMatchTracker:
             self.lost_frames += 1
             age = (stamp - s_rec) if (stamp is not None and s_rec is not None) else self.lost_frames / 30.0
             if age <= self.cfg.recover_s:
-                fr.motion = None
+                fr.motion, fr.relocalizing = None, True
                 r = self._render_and_refine(fr, T_rec, self.cfg.reloc_refine_rounds)
                 if self._good(r):
                     status = Status.RELOCALIZED
@@ -362,7 +365,7 @@ class RenderMatchTracker:
             t0 = time.perf_counter()
             coarse, _ = self.db.localize(feats, camera, k=self.cfg.reloc_candidates, min_inliers=max(15, self.cfg.min_inliers // 2))
             fr.tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
-            fr.motion = None  # a relocalized frame starts without motion
+            fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
             r = self._render_and_refine(fr, coarse.T_wc, self.cfg.reloc_refine_rounds) if coarse is not None else None
             if self._good(r):
                 status = Status.RELOCALIZED
