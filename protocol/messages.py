@@ -158,6 +158,9 @@ class FrameRequest(_Msg):
     - ``motion``: optional relative motion since the previous frame from the device's odometry, as
       ``T_prev_cur`` (the current camera in the previous camera's frame). The server predicts
       ``T_wc = T_wc_prev @ motion`` when it has a previous pose.
+    - ``exposure_s``: optional exposure time of this frame (seconds), when the camera reports it. Fast
+      frames are blurred; the server blurs its render to match, with this time if given (otherwise it
+      calibrates one per client from the first fast frames).
     - ``reset``: forget this client's state (tracking starts over, by relocalization unless ``prior`` is given).
     - ``map``: optional map id the client expects; a server serving another map rejects with ``unknown_map``.
     - ``deadline_ms``: how long the client will wait for the reply; the server drops the frame (``dropped/deadline``)
@@ -173,6 +176,7 @@ class FrameRequest(_Msg):
     intrinsics: Intrinsics
     prior: PoseMsg | None = None
     motion: PoseMsg | None = None
+    exposure_s: float | None = Field(default=None, ge=0.0, le=1.0)
     reset: bool = False
     map: str | None = Field(default=None, max_length=64)
     deadline_ms: float | None = Field(default=None, gt=0, le=600_000)

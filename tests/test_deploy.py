@@ -38,7 +38,7 @@ class FixedBackend:
             def reset(self):
                 pass
 
-            def process(self, image, camera, prior, motion, stamp=None):
+            def process(self, image, camera, prior, motion, stamp=None, exposure_s=None):
                 return TrackResult("tracking", Pose.from_tum([1, 2, 3, 0, 0, 0, 1]), 99, 0.5, 0.01, 0.1, {"total_ms": 1.0})
 
         return T()

@@ -23,9 +23,12 @@ def _req(**kw):
 
 
 def test_frame_and_reply_round_trip():
-    r = _req(encoding=ImageEncoding.GRAY8, reset=True, deadline_ms=80)
+    r = _req(encoding=ImageEncoding.GRAY8, reset=True, deadline_ms=80, exposure_s=0.012)
     back = decode(encode(r), FrameRequest)
     assert back == r and back.encoding is ImageEncoding.GRAY8 and back.prior.as_tum() == [1, 2, 3, 0, 0, 0, 1]
+    assert back.exposure_s == 0.012 and _req().exposure_s is None
+    with pytest.raises(ValueError):
+        _req(exposure_s=-0.001)  # an exposure time is never negative (nor over a second)
     rep = PoseReply(client="dev-1", seq=3, status=Status.TRACKING, pose=PoseMsg.from_tum([0, 0, 1, 0, 0, 0, 1]),
                     inliers=120, rmse_px=0.7, timings={"total_ms": 31.0}, server="s1", map="office")
     assert decode(encode(rep), PoseReply) == rep

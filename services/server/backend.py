@@ -49,9 +49,9 @@ class _RMTracker:
         self.t.reset()
 
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None,
-                stamp: float | None = None) -> TrackResult:
+                stamp: float | None = None, exposure_s: float | None = None) -> TrackResult:
         # stamps give the tracker its constant-velocity prediction and motion-blur model; odometry replaces the former
-        r = self.t.process(image, camera, prior, stamp=stamp, motion=motion)
+        r = self.t.process(image, camera, prior, stamp=stamp, motion=motion, exposure_s=exposure_s)
         return TrackResult(_status(r.status), r.T_wc, int(r.inliers), float(r.rmse_px), float(r.sigma_m),
                            float(r.sigma_deg), dict(r.timings))
 
@@ -121,7 +121,7 @@ class _PnlTracker:
         self.T_last = None
 
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None,
-                stamp: float | None = None) -> TrackResult:
+                stamp: float | None = None, exposure_s: float | None = None) -> TrackResult:
         if prior is None and motion is not None and self.T_last is not None:
             prior = self.T_last @ motion
         r = self.loc.process(image, camera, prior)
