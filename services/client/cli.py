@@ -104,13 +104,10 @@ def run_stream(args) -> int:
     summary = {"out": args.out, "poses": len(traj), **s}
     gt = getattr(seq, "groundtruth", None)
     if gt is not None and len(traj):
-        from services.eval.ape import compute_ape
-        from services.io.trajectory import Trajectory
+        from services.eval.ape import ape_first_frames
 
-        n = st.frames
-        a = compute_ape(Trajectory(gt.stamps[:n], gt.poses[:n]), traj, "none")
-        print(f"APE (no alignment): translation RMSE {100 * a.trans_rmse:.2f} cm, rotation RMSE {a.rot_rmse_deg:.3f} deg, "
-              f"{a.fraction:.1%} of frames")
-        summary.update(ape_none_trans_rmse_m=a.trans_rmse, ape_none_rot_rmse_deg=a.rot_rmse_deg, fraction=a.fraction)
+        line, fields = ape_first_frames(gt, traj, st.frames)
+        print(line)
+        summary.update(fields)
     emit_summary(summary)
     return 0 if len(traj) else 1

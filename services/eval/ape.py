@@ -176,3 +176,12 @@ def evaluate(gt: Trajectory, est: Trajectory, aligns: tuple[str, ...] = ALIGNMEN
         except DegenerateAlignment as exc:
             log.warning("APE with %s alignment skipped: %s", a, exc)
     return out
+
+
+def ape_first_frames(gt: Trajectory, est: Trajectory, n: int) -> tuple[str, dict]:
+    """APE with no alignment of ``est`` against the first ``n`` ground-truth poses, as the localize/stream
+    commands report it: a human line and the summary fields."""
+    a = compute_ape(Trajectory(gt.stamps[:n], gt.poses[:n]), est, "none")
+    line = (f"APE (no alignment): translation RMSE {100 * a.trans_rmse:.2f} cm, rotation RMSE {a.rot_rmse_deg:.3f} deg, "
+            f"{a.fraction:.1%} of frames")
+    return line, {"ape_none_trans_rmse_m": a.trans_rmse, "ape_none_rot_rmse_deg": a.rot_rmse_deg, "fraction": a.fraction}

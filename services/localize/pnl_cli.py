@@ -55,12 +55,10 @@ def run_localize_pnl(args) -> int:
                "relocalizations": counts[Status.RELOCALIZED], "lost": counts[Status.LOST], "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
     if seq.groundtruth is not None and len(traj):
-        from services.eval.ape import compute_ape
+        from services.eval.ape import ape_first_frames
 
-        gt = seq.groundtruth
-        a = compute_ape(Trajectory(gt.stamps[:n], gt.poses[:n]), traj, "none")
-        print(f"APE (no alignment): translation RMSE {100 * a.trans_rmse:.2f} cm, rotation RMSE {a.rot_rmse_deg:.3f} deg, "
-              f"{a.fraction:.1%} of frames")
-        summary.update(ape_none_trans_rmse_m=a.trans_rmse, ape_none_rot_rmse_deg=a.rot_rmse_deg, fraction=a.fraction)
+        line, fields = ape_first_frames(seq.groundtruth, traj, n)
+        print(line)
+        summary.update(fields)
     emit_summary(summary)
     return 0 if len(traj) else 1

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -71,7 +70,6 @@ class RMConfig:
     calib_frames: int = 8  # ... until this many have
     calib_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)  # exposure candidates, x frame interval
     ransac_min_iterations: int = 100  # while tracking (relocalization keeps poselib's 1000)
-    overlap: bool = False  # render / blur the keyframe on a second thread while XFeat runs on the live frame (no gain measured on 2 cores; off: reproducible)
 
 
 @dataclass
@@ -137,7 +135,6 @@ class RenderMatchTracker:
         # exposure calibration: per candidate (fraction of the frame interval) the summed share of inliers it got
         self.calib_scores = np.zeros(len(cfg.calib_fractions))
         self.calib_intervals: list[float] = []
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rm-keyframe") if cfg.overlap else None
         self.reset()
 
     def reset(self) -> None:
@@ -236,7 +233,7 @@ class RenderMatchTracker:
         fr.tm["pose_ms"] = fr.tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
         return r
 
-    def _match(self, kf: Keyframe, fr: _Frame, initial: Pose | None, fresh: bool = False, pts=None) -> PnpResult | None:
+    def _match(self, kf: Keyframe, fr: _Frame, initial: Pose | None, fresh: bool = False) -> PnpResult | None:
         """Match the frame against a keyframe, blurred like the frame when it moves fast.
 
         ``fresh``: the keyframe was rendered for this frame, so blur, not viewpoint, dominates what the
@@ -262,9 +259,7 @@ class RenderMatchTracker:
                 log.info("exposure calibration %d/%d: best %.1f ms on this frame, %.1f ms over all", len(self.calib_intervals),
                          self.cfg.calib_frames, 1e3 * self.cfg.calib_fractions[int(np.argmax(inl))] * fr.motion[1], 1e3 * self.exposure_s)
             return best
-        if pts is None:
-            pts = self._keyframe_points(kf, fr)
-        return self._solve(live, *pts, fr, initial, px)
+        return self._solve(live, *self._keyframe_points(kf, fr), fr, initial, px)
 
     def _keyframe_points(self, kf: Keyframe, fr: _Frame) -> tuple[Features, np.ndarray]:
         """The keyframe's features and world points as this frame sees them (blurred when it moves fast)."""
@@ -285,14 +280,11 @@ class RenderMatchTracker:
         dt, dr = T.distance_to(kf.T_wc)
         return dt > self.cfg.rerender_m or dr > self.cfg.rerender_deg
 
-    def _render_and_refine(self, fr: _Frame, T: Pose, rounds: int = 1, first=None) -> PnpResult | None:
-        """Render at ``T`` and match, up to ``rounds`` times while the pose still moves; keeps the last keyframe.
-
-        ``first``: a future of the first keyframe (rendered at ``T`` on the worker thread).
-        """
+    def _render_and_refine(self, fr: _Frame, T: Pose, rounds: int = 1) -> PnpResult | None:
+        """Render at ``T`` and match, up to ``rounds`` times while the pose still moves; keeps the last keyframe."""
         r = None
-        for k in range(rounds):
-            kf = first.result() if (k == 0 and first is not None) else self._keyframe(T, fr)
+        for _ in range(rounds):
+            kf = self._keyframe(T, fr)
             r = self._match(kf, fr, T, fresh=True)
             if not self._good(r):
                 return None
@@ -333,16 +325,11 @@ class RenderMatchTracker:
                 D, dt = fr.motion
                 T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
             kf = self.kf
-            rerender = kf is None or kf.frame_camera != camera or self._far(T_pred, kf)
-            ahead = None  # the keyframe work this frame will need, started before the live frame's XFeat
-            if self._pool is not None:
-                ahead = self._pool.submit(self._keyframe, T_pred, fr) if rerender else self._pool.submit(self._keyframe_points, kf, fr)
-                self._live(fr, self._base_scale(camera))
-            if rerender:
-                r = self._render_and_refine(fr, T_pred, first=ahead)
+            if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
+                r = self._render_and_refine(fr, T_pred)
                 rerendered = True
             else:
-                r = self._match(kf, fr, T_pred, pts=None if ahead is None else ahead.result())
+                r = self._match(kf, fr, T_pred)
                 if not self._good(r) or self._far(r.T_wc, kf) or r.n_inliers < self.cfg.rerender_inlier_ratio * kf.ref_inliers:
                     r = self._render_and_refine(fr, r.T_wc if self._good(r) else T_pred)
                     rerendered = True

@@ -460,26 +460,19 @@ def check_map_dict(d, config: dict | None = None, max_per_rule: int = 5) -> list
         if "num_levels" in o and (not _is_int(o["num_levels"]) or o["num_levels"] < 1):
             bad("R7", f"orb_params '{name}': num_levels {o['num_levels']!r} is not a positive integer")
     # ---- R4 ids
-    kf_ids: dict[int, dict] = {}
-    for k, e in kfs.items():
-        i = _dec_id(k)
-        if i is None:
-            bad("R4", f"keyframe id {k!r} is not a decimal string")
-            continue
-        if not isinstance(e, dict):
-            bad("R0", f"keyframe {k} is not a map")
-            continue
-        kf_ids[i] = e
-    lm_ids: dict[int, dict] = {}
-    for k, e in lms.items():
-        i = _dec_id(k)
-        if i is None:
-            bad("R4", f"landmark id {k!r} is not a decimal string")
-            continue
-        if not isinstance(e, dict):
-            bad("R0", f"landmark {k} is not a map")
-            continue
-        lm_ids[i] = e
+    def by_id(kind: str, entries: dict) -> dict[int, dict]:
+        out: dict[int, dict] = {}
+        for k, e in entries.items():
+            i = _dec_id(k)
+            if i is None:
+                bad("R4", f"{kind} id {k!r} is not a decimal string")
+            elif not isinstance(e, dict):
+                bad("R0", f"{kind} {k} is not a map")
+            else:
+                out[i] = e
+        return out
+
+    kf_ids, lm_ids = by_id("keyframe", kfs), by_id("landmark", lms)
     for key, ids in (("keyframe_next_id", kf_ids), ("landmark_next_id", lm_ids)):
         v = d.get(key)
         if key in d and (not _is_int(v) or (ids and v <= max(ids))):
