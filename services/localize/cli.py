@@ -58,6 +58,11 @@ def register(sub) -> None:
     p.add_argument("--frames", type=int, help="only the first N frames")
     p.add_argument("--device", default="auto")
     p.add_argument("--max-side", type=int, help="XFeat input size (default: 480 on the CPU, full size on CUDA)")
+    p.add_argument("--max-sigma-deg", type=float, default=0.1,
+                   help="(--method rm) report a pose only if its predicted 1-sigma orientation error is below this "
+                        "(default 0.1; scaled up for cameras coarser than VGA); larger: more frames, less accurate")
+    p.add_argument("--max-sigma-cm", type=float, default=1.0,
+                   help="(--method rm) the same for the camera centre, in centimetres (default 1)")
     p.set_defaults(func=run_localize)
 
 
@@ -130,7 +135,7 @@ def run_localize(args) -> int:
     from services.io.scans import load_scan
     from services.io.sequence import open_sequence
     from services.io.trajectory import Trajectory, write_tum
-    from services.localize.render_match import RenderMatchTracker, Status
+    from services.localize.render_match import RenderMatchTracker, RMConfig, Status
     from services.log import progress
     from services.relocalize.database import RelocDB
     from services.render.renderer import Renderer
@@ -141,7 +146,8 @@ def run_localize(args) -> int:
     scan = load_scan(args.scan)
     renderer = Renderer(scan, device=args.device)
     max_side = args.max_side if args.max_side else (None if renderer.device.type == "cuda" else 480)
-    tracker = RenderMatchTracker(renderer, XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side), db)
+    cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100)
+    tracker = RenderMatchTracker(renderer, XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side), db, cfg)
     n = min(len(seq), args.frames or len(seq))
     traj = Trajectory()
     counts = {s: 0 for s in Status}
