@@ -28,7 +28,7 @@ from services.io.decimate import random_decimate  # noqa: E402
 from services.io.scans import load_scan  # noqa: E402
 from services.io.sequence import open_sequence  # noqa: E402
 from services.io.trajectory import Trajectory  # noqa: E402
-from services.localize.render_match import RenderMatchTracker, Status  # noqa: E402
+from services.localize.render_match import RenderMatchTracker, RMConfig, Status  # noqa: E402
 from services.relocalize.database import build_database  # noqa: E402
 from services.relocalize.roi import RoiConfig, sample_positions  # noqa: E402
 from services.render.renderer import Renderer  # noqa: E402
@@ -36,13 +36,13 @@ from services.render.renderer import Renderer  # noqa: E402
 STAGE_NAMES = {"full": "full (filter + U-Net)", "filter": "splat + filter", "splat": "splat only"}
 
 
-def run(scan, seq, stage: str, frames: int, max_side: int, top_k: int, spacing: float) -> dict:
+def run(scan, seq, stage: str, frames: int, max_side: int, top_k: int, spacing: float, cfg: RMConfig) -> dict:
     renderer = Renderer(scan, stage=stage)
     ext = XFeatExtractor(device="cpu", top_k=top_k, max_side=max_side)
     t0 = time.perf_counter()
     db = build_database(renderer, sample_positions(scan, RoiConfig(spacing=spacing)), ext)
     db_s = time.perf_counter() - t0
-    tracker = RenderMatchTracker(renderer, ext, db)
+    tracker = RenderMatchTracker(renderer, ext, db, cfg)
     traj, counts, stage_ms = Trajectory(), {s: 0 for s in Status}, {}
     t0 = time.perf_counter()
     for i in range(frames):
@@ -73,6 +73,8 @@ def main() -> None:
     ap.add_argument("--top-k", type=int, default=1024, help="XFeat keypoints per image")
     ap.add_argument("--spacing", type=float, default=1.0, help="relocalization database grid (m)")
     ap.add_argument("-j", "--threads", type=int, default=1)
+    ap.add_argument("--max-sigma-deg", type=float, default=RMConfig.max_sigma_deg, help="pose gate (see cristal localize --help)")
+    ap.add_argument("--max-sigma-cm", type=float, default=100 * RMConfig.max_sigma_m, help="pose gate, centimetres")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     site = ensure_site(args.site, args.preset)
@@ -80,7 +82,9 @@ def main() -> None:
     seq = open_sequence(site / args.sequence)
     frames = min(len(seq), args.frames or len(seq))
     print(f"{site}/{args.sequence}: {frames} frames {seq.camera.width}x{seq.camera.height}, scan {len(full):,} points, "
-          f"torch threads {args.threads}, XFeat top-{args.top_k} at {args.max_side or 'full'} px")
+          f"torch threads {args.threads}, XFeat top-{args.top_k} at {args.max_side or 'full'} px, "
+          f"gates 1-sigma {args.max_sigma_cm:g} cm / {args.max_sigma_deg:g} deg")
+    cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100)
     cols = ["render_ms", "features_ms", "kf_features_ms", "blur_ms", "match_ms", "pose_ms", "relocalize_ms", "total_ms"]
     print("| points | renderer | localized | reloc | APE t cm | APE r deg | FPS | " + " | ".join(c[:-3] for c in cols)
           + " | DB views / s | exposure ms |")
@@ -88,7 +92,7 @@ def main() -> None:
     for frac in args.decimations:
         scan = full if frac >= 1.0 else random_decimate(full, frac)
         for stage in args.stages:
-            r = run(scan, seq, stage, frames, args.max_side or None, args.top_k, args.spacing)
+            r = run(scan, seq, stage, frames, args.max_side or None, args.top_k, args.spacing, cfg)
             print(f"| {len(scan):,} ({100 * frac:.0f} %) | {STAGE_NAMES[stage]} | {r['localized']}/{r['frames']} "
                   f"({100 * r['localized'] / r['frames']:.1f} %) | {r['reloc']} | {r['t_cm']:.2f} | {r['r_deg']:.3f} | "
                   f"{r['fps']:.1f} | " + " | ".join(f"{r.get(c, 0.0):.1f}" for c in cols)
