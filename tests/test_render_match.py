@@ -213,3 +213,40 @@ def test_lucas_kanade_moves_matches_onto_the_true_correspondence(small_site):
     edge[:, 30:] = 200
     _, ok_edge = refine_matches_lk(edge, edge, np.array([[30.0, 30.0]]), np.array([[30.5, 31.0]]), 15, 2.0)
     assert not ok_edge[0]
+
+
+def test_gates_promise_the_accuracy_and_scale_for_coarse_cameras():
+    """A pose is reported only if its predicted 1-sigma is within 1 cm / 0.1 deg; a camera whose pixels
+    subtend four times VGA's angle gets gates four times as wide (it cannot do better)."""
+    from services.geometry.pnp import PnpResult
+    from services.geometry.se3 import Pose
+
+    tr = RenderMatchTracker(renderer=None, extractor=None)
+    cov = np.diag([0.005 ** 2] * 3 + [np.radians(0.2) ** 2] * 3)  # 5 mm, 0.2 deg
+    r = PnpResult(Pose.identity(), np.ones(200, bool), 0.8, 10, cov)
+    r.px_factor, r.px_deg = 1.0, 0.116  # 640 px, 65 deg wide
+    assert not tr._good(r)
+    r.px_deg = 0.46  # 160 px wide
+    assert tr._good(r)
+    r.cov = np.diag([0.05 ** 2] * 3 + [np.radians(0.05) ** 2] * 3)  # 5 cm: too uncertain even there
+    assert not tr._good(r)
+
+
+def test_blurred_keyframe_features_are_reused_while_the_motion_is_alike(rm_setup):
+    from services.geometry.se3 import Pose
+    from services.localize.render_match import RMConfig, _Frame
+
+    renderer, ext, _, seq, _ = rm_setup
+    tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(exposure_s=0.03))
+    f = seq.read(0)
+    D = Pose.from_rotvec_t(np.radians([0.0, 4.0, 0.0]), [0.02, 0.0, 0.0])  # a fast turn: ~20 px of blur
+    fr = _Frame(f.image, seq.camera, {}, (D, 1 / 30), 1 / 30, None)
+    kf = tr._keyframe(seq.groundtruth.poses[0], fr)
+    first = tr._blurred_points(kf, fr, 0.03)
+    tm2 = {}
+    again = tr._blurred_points(kf, _Frame(f.image, seq.camera, tm2, (D @ Pose.from_rotvec_t([0, 1e-4, 0], [0, 0, 0]), 1 / 30),
+                                          1 / 30, None), 0.03)
+    assert again[0] is first[0] and "blur_ms" not in tm2  # nearly the same motion: no new blur, no XFeat pass
+    tm3 = {}
+    other = tr._blurred_points(kf, _Frame(f.image, seq.camera, tm3, (D.inverse(), 1 / 30), 1 / 30, None), 0.03)
+    assert other[0] is not first[0] and tm3["blur_ms"] > 0  # the opposite turn is blurred anew
