@@ -48,7 +48,7 @@ def build(site: Path, stage: str, fraction: float, spacing: float, rebuild: bool
     return out, summary
 
 
-def localize(map_dir: Path, seq_dir: Path) -> dict:
+def localize(map_dir: Path, seq_dir: Path, align: bool = True) -> dict:
     from services.eval.ape import compute_ape
     from services.io.sequence import open_sequence
     from services.io.trajectory import Trajectory
@@ -57,7 +57,7 @@ def localize(map_dir: Path, seq_dir: Path) -> dict:
 
     seq = open_sequence(seq_dir)
     t0 = time.perf_counter()
-    loc = PnlLocalizer.load(map_dir, PnlConfig())
+    loc = PnlLocalizer.load(map_dir, PnlConfig(align=align))
     load_s = time.perf_counter() - t0
     traj = Trajectory()
     track_ms, all_ms, counts = [], [], {s: 0 for s in Status}
@@ -91,6 +91,7 @@ def localize(map_dir: Path, seq_dir: Path) -> dict:
     return {"frames": len(seq), "localized": len(traj), "first": first, "relocalizations": counts[Status.RELOCALIZED],
             "ape_cm": 100 * a.trans_rmse if a else float("nan"), "ape_deg": a.rot_rmse_deg if a else float("nan"),
             "ape_median_cm": 100 * a.trans_median if a else float("nan"),
+            "ape_median_deg": a.rot_median_deg if a else float("nan"),
             "track_fps": 1000 / np.mean(track_ms) if track_ms else 0.0,
             "track_ms_median": float(np.median(track_ms)) if track_ms else float("nan"),
             "fps": 1000 * len(all_ms) / sum(all_ms), "wall_fps": len(seq) / wall, "load_s": load_s,
@@ -107,17 +108,21 @@ def main() -> None:
     site = Path(args.site)
     if not (site / "site.json").exists():
         sys.exit(f"{site}: no simulated site (cristal sim --preset office --seed 1 --out {site})")
-    print("| site | map from | points | keyframes | landmarks | map MB | build s | localized | 1st frame | APE RMSE cm / deg (none) | APE median cm "
-          "| track CPU ms (median) | track FPS | FPS all | cold reloc |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| site | map from | points | keyframes | landmarks | map MB (+ patches) | build s | patch alignment | localized | 1st frame "
+          "| APE RMSE cm / deg (none) | APE median cm / deg | track CPU ms (median) | track FPS | FPS all | cold reloc |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for v in args.variants:
         stage, frac = v.split(":")
         out, b = build(site, stage, float(frac), args.spacing, args.rebuild)
-        r = localize(out, site / "seq_00")
-        print(f"| {site.name} | {stage} | {b['points'] / 1e6:.2f} M ({float(frac):.0%}) | {b['keyframes']} | {b['landmarks']:,} "
-              f"| {b['bytes'] / 1e6:.1f} | {b['total_s']:.0f} | {r['localized']}/{r['frames']} = {r['localized'] / r['frames']:.1%} "
-              f"| {r['first']} | {r['ape_cm']:.2f} / {r['ape_deg']:.3f} | {r['ape_median_cm']:.2f} | {r['track_ms_median']:.1f} | {r['track_fps']:.0f} "
-              f"| {r['fps']:.0f} | {r['cold']} |", flush=True)
+        patches = out / "patches.npz"
+        extra = f" (+ {patches.stat().st_size / 1e6:.1f})" if patches.exists() else ""
+        for align in ([True, False] if patches.exists() else [False]):
+            r = localize(out, site / "seq_00", align)
+            print(f"| {site.name} | {stage} | {b['points'] / 1e6:.2f} M ({float(frac):.0%}) | {b['keyframes']} | {b['landmarks']:,} "
+                  f"| {b['bytes'] / 1e6:.1f}{extra} | {b['total_s']:.0f} | {'on' if align else 'off'} "
+                  f"| {r['localized']}/{r['frames']} = {r['localized'] / r['frames']:.1%} | {r['first']} "
+                  f"| {r['ape_cm']:.2f} / {r['ape_deg']:.3f} | {r['ape_median_cm']:.2f} / {r['ape_median_deg']:.3f} "
+                  f"| {r['track_ms_median']:.1f} | {r['track_fps']:.0f} | {r['fps']:.0f} | {r['cold']} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -139,19 +139,21 @@ def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, re
 
     from services.io.atomic import atomic_write_text
     from services.prebuild.builder import BuildConfig, build_map
+    from services.prebuild.patches import PATCH_FILE
     from services.prebuild.stella_map import CONFIG_FILE, MAP_FILE, check_map_dict, map_to_dict, write_config, write_map
     from services.relocalize.roi import RoiConfig, sample_positions
 
     d, stamp_path = out / "pnl", out / "pnl.build.json"
     cfg = BuildConfig()
-    stamp = _stamp(scan_path, {"spacing": spacing, "camera": camera.to_dict(), "max_keypoints": cfg.orb.max_keypoints})
+    stamp = _stamp(scan_path, {"spacing": spacing, "camera": camera.to_dict(), "max_keypoints": cfg.orb.max_keypoints,
+                               "patch_size": cfg.patch_size})
     if not regenerate and (d / MAP_FILE).is_file() and stamp_path.is_file() and json.loads(stamp_path.read_text()) == stamp:
         log.info("[2/5] P&L map %s is up to date", d)
         return d, False
     stamp_path.unlink(missing_ok=True)
     pos = sample_positions(scan, RoiConfig(spacing=spacing))
     log.info("[2/5] P&L map: ORB keyframes and landmarks from renders at %d positions", len(pos))
-    m, stats = build_map(renderer, pos, camera, cfg, spacing=spacing) if len(pos) else (None, {})
+    m, stats, patches = build_map(renderer, pos, camera, cfg, spacing=spacing) if len(pos) else (None, {}, None)
     if m is None or m.n_landmarks == 0:
         log.warning("the P&L map has no landmark (camera %dx%d): the client runs without a local fallback",
                     camera.width, camera.height)
@@ -163,6 +165,8 @@ def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, re
     d.mkdir(parents=True, exist_ok=True)
     write_map(m, d / MAP_FILE)
     write_config(d / CONFIG_FILE, m.cameras[cfg.camera_name], next(iter(m.orb_params.values())), cfg.orb.max_keypoints)
+    if patches is not None:
+        patches.save(d / PATCH_FILE)
     atomic_write_text(stamp_path, json.dumps(stamp, indent=1) + "\n")
     return d, True
 

@@ -65,6 +65,10 @@ def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
     mapdir, summary = pnl_map
     assert summary["keyframes"] > 10 and summary["landmarks"] > 500
     assert (mapdir / "map.msg").exists() and (mapdir / "config.yaml").exists()
+    from services.prebuild.patches import LandmarkPatches
+
+    patches = LandmarkPatches.load(mapdir / "patches.npz")  # the light localizer's landmark patches, beside the map
+    assert len(patches.lm_ids) == summary["landmarks"] and patches.size == 23
     problems, stats = check_map_dir(mapdir)
     assert problems == [] and stats["config"]
     m = read_map(mapdir)

@@ -1,4 +1,4 @@
-"""The P&L map bundle: a map directory (``map.msg`` + ``config.yaml``) as one checksummed byte string.
+"""The P&L map bundle: a map directory (``map.msg`` + ``config.yaml`` [+ ``patches.npz``]) as one checksummed byte string.
 
 The server packs the directory once (an uncompressed tar: msgpack maps do not compress much
 and clients unpack with the standard library), serves it in chunks over Zenoh
@@ -17,6 +17,7 @@ from pathlib import Path
 __all__ = ["Bundle", "BundleError", "pack_map_dir", "unpack_bundle", "MAP_FILES"]
 
 MAP_FILES = ("map.msg", "config.yaml")
+OPTIONAL_FILES = ("patches.npz",)  # landmark patches for the light localizer's alignment (services.prebuild.patches)
 DEFAULT_CHUNK = 512 * 1024
 
 
@@ -54,15 +55,16 @@ def pack_map_dir(map_dir: str | Path, chunk_size: int = DEFAULT_CHUNK) -> Bundle
     missing = [f for f in MAP_FILES if not (d / f).is_file()]
     if missing:
         raise BundleError(f"{d}: missing {', '.join(missing)} (a P&L map directory holds {' + '.join(MAP_FILES)})")
+    files = MAP_FILES + tuple(f for f in OPTIONAL_FILES if (d / f).is_file())
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w", format=tarfile.PAX_FORMAT) as tar:
-        for name in MAP_FILES:
+        for name in files:
             data = (d / name).read_bytes()
             ti = tarfile.TarInfo(name)
             ti.size, ti.mtime, ti.mode = len(data), 0, 0o644
             tar.addfile(ti, io.BytesIO(data))
     data = buf.getvalue()
-    return Bundle(data, hashlib.sha256(data).hexdigest(), MAP_FILES, chunk_size)
+    return Bundle(data, hashlib.sha256(data).hexdigest(), files, chunk_size)
 
 
 def unpack_bundle(data: bytes, sha256: str, out_dir: str | Path) -> Path:
@@ -76,7 +78,7 @@ def unpack_bundle(data: bytes, sha256: str, out_dir: str | Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
         for m in tar.getmembers():
-            if m.name not in MAP_FILES or not m.isfile():
+            if m.name not in MAP_FILES + OPTIONAL_FILES or not m.isfile():
                 raise BundleError(f"map bundle holds an unexpected entry {m.name!r}")
             atomic_write_bytes(out / m.name, tar.extractfile(m).read())
     return out

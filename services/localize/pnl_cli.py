@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+
+
+log = logging.getLogger(__name__)
 
 
 def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing"):
@@ -45,7 +49,9 @@ def run_localize_pnl(args) -> int:
 
         cv2.setNumThreads(int(args.threads))  # -j 1: the one-core figure of benchmarks/RESULTS.md
     seq = open_sequence(args.sequence)
-    loc = PnlLocalizer.load(map_dir, PnlConfig())
+    loc = PnlLocalizer.load(map_dir, PnlConfig(align=not getattr(args, "no_align", False)))
+    if loc.patches is None:
+        log.info("%s has no landmark patches (a map from before them, or from stella_vslam): keypoint measurements only", map_dir)
     n = min(len(seq), args.frames or len(seq))
     traj, counts, stage, dt = localize_sequence(loc, seq, n)
     write_tum(args.out, traj, header="cristal localize --method pnl: camera-to-world in the scan frame")

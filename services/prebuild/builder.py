@@ -32,6 +32,7 @@ from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hammin
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose, look_at
 from services.log import progress
+from services.prebuild.patches import LandmarkPatches, sample_patches
 from services.prebuild.stella_map import DEFAULT_ORB_NAME, MapCamera, MapKeyframe, OrbParams, StellaMap
 
 __all__ = ["BuildConfig", "view_poses", "build_map"]
@@ -54,6 +55,7 @@ class BuildConfig:
     min_observations: int = 2  # drop landmarks seen by fewer keyframes
     cluster_tol_m: float = 0.02  # observations farther than this (+1 % of depth) from the cluster median are dropped
     camera_name: str = "cristal camera"
+    patch_size: int = 23  # landmark patches (pixels, odd) stored beside the map for live alignment; 0 = none
     fps: float = 30.0
 
 
@@ -82,6 +84,24 @@ class _View:
     z: np.ndarray  # (N,) depth in this view
     pos_index: int
     uvc: np.ndarray  # (N, 2) level-0 pixel centres of the keypoints
+    gray: np.ndarray | None = None  # the render in grey (landmark patches)
+    normals: np.ndarray | None = None  # (N, 3) world surface normals at the keypoints, towards the camera
+
+
+def _normals(render, uv: np.ndarray, step: float = 3.0) -> np.ndarray:
+    """World surface normals at pixels ``uv`` from the render's depth (central differences ``step`` px
+    apart), turned towards the camera; facing the camera where a neighbour has no depth."""
+    d = np.array([[step, 0.0], [-step, 0.0], [0.0, step], [0.0, -step]])
+    X = [render.backproject(uv + o) for o in d]
+    ok = np.logical_and.reduce([x[1] for x in X])
+    n = np.cross(X[0][0] - X[1][0], X[2][0] - X[3][0])
+    centre, _ = render.backproject(uv)
+    view = render.T_wc.t - centre
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-9)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    ok &= norm[:, 0] > 1e-12
+    n = np.where(ok[:, None], n / np.maximum(norm, 1e-12), view)
+    return np.where((np.einsum("ij,ij->i", n, view) < 0)[:, None], -n, n)
 
 
 def _depth_ok(depth: np.ndarray, uv: np.ndarray, max_step: float) -> np.ndarray:
@@ -143,7 +163,8 @@ def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera
         uvc = level_centres(f.kpts, f.octaves, cfg.orb.scale_factor)
         X, _ = r.backproject(uvc)
         z = T.inverse().transform(X)[:, 2]
-        views.append(_View(T, f, X, z, pi, uvc))
+        views.append(_View(T, f, X, z, pi, uvc, gray if cfg.patch_size else None,
+                           _normals(r, uvc) if cfg.patch_size else None))
         tm["render_s"] += t1 - t0
         tm["orb_s"] += time.perf_counter() - t1
     return views, tm
@@ -259,8 +280,9 @@ def _spanning_tree(kf_ids: list[int], obs_kf: np.ndarray, obs_lm: np.ndarray, ce
     return parent
 
 
-def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig = BuildConfig(), spacing: float = 1.0) -> tuple[StellaMap, dict]:
-    """Render, extract, merge and assemble the map. Returns (map, stats)."""
+def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig = BuildConfig(),
+              spacing: float = 1.0) -> tuple[StellaMap, dict, LandmarkPatches | None]:
+    """Render, extract, merge and assemble the map. Returns (map, stats, landmark patches or None)."""
     t_start = time.perf_counter()
     cam = camera.undistorted()
     poses: list[Pose] = []
@@ -284,6 +306,7 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
     sizes = np.diff(bounds)
     keep_obs: list[np.ndarray] = []
     lm_pos: list[np.ndarray] = []
+    lm_src: list[int] = []  # the observation whose keyframe gives the landmark's patch
     for s, e in zip(bounds[:-1][sizes >= cfg.min_observations], bounds[1:][sizes >= cfg.min_observations]):
         o = order[s:e]
         X = all_X[o]
@@ -302,6 +325,7 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
         keep_obs.append(o)
         oc = all_oct[o]
         lm_pos.append(all_X[o[oc == oc.min()]].mean(axis=0))  # the finest pyramid level locates the corner best
+        lm_src.append(int(o[oc == oc.min()][0]))
     # keyframes that observe at least one landmark; ids in view order
     obs_lm = np.concatenate([np.full(len(o), i) for i, o in enumerate(keep_obs)]) if keep_obs else np.zeros(0, int)
     obs_all = np.concatenate(keep_obs) if keep_obs else np.zeros(0, int)
@@ -341,10 +365,32 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
         lm_first_kf=first_kf, lm_ref_kf=first_kf.copy(), lm_n_vis=n_obs, lm_n_fnd=n_obs.copy(),
         keyframe_next_id=len(kf_ids), landmark_next_id=len(keep_obs), frame_next_id=len(kf_ids),
     )
+    patches = _landmark_patches(views, obs_view, np.array(lm_src, np.int64), m.lm_pos, cam, cfg) if cfg.patch_size else None
     stats = {"positions": int(len(positions)), "views": len(views), "keyframes": m.n_keyframes, "landmarks": m.n_landmarks,
              "observations": int(len(obs_all)), "candidates": int(len(obs_view)),
              "render_s": round(tm["render_s"], 2), "orb_s": round(tm["orb_s"], 2),
              "merge_s": round(time.perf_counter() - t_merge, 2), "build_s": round(time.perf_counter() - t_start, 2)}
     log.info("prebuild: %d keyframes, %d landmarks (%d observations of %d candidates) in %.1f s", m.n_keyframes,
              m.n_landmarks, stats["observations"], stats["candidates"], stats["build_s"])
-    return m, stats
+    return m, stats, patches
+
+
+def _landmark_patches(views: list[_View], obs_view: np.ndarray, src_obs: np.ndarray, lm_pos: np.ndarray, cam: Camera,
+                      cfg: BuildConfig) -> LandmarkPatches:
+    """Each landmark's patch (centred on its projection), normal and keyframe pose from its source observation."""
+    n = len(src_obs)
+    patches = np.zeros((n, cfg.patch_size, cfg.patch_size), np.uint8)
+    normals = np.zeros((n, 3), np.float32)
+    src_view = obs_view[src_obs] if n else np.zeros(0, np.int64)
+    starts = np.cumsum([0] + [len(v.feats) for v in views])
+    used, src = np.unique(src_view, return_inverse=True)
+    src_T_cw = np.zeros((len(used), 3, 4))
+    for j, vi in enumerate(used.tolist()):
+        v = views[vi]
+        T_cw = v.T_wc.inverse()
+        src_T_cw[j] = np.column_stack([T_cw.R, T_cw.t])
+        sel = np.flatnonzero(src_view == vi)
+        uv, _ = cam.project(T_cw.transform(lm_pos[sel]))
+        patches[sel] = np.clip(sample_patches(v.gray, uv, cfg.patch_size) + 0.5, 0, 255).astype(np.uint8)
+        normals[sel] = v.normals[src_obs[sel] - starts[vi]]
+    return LandmarkPatches(np.arange(n, dtype=np.int64), patches, normals, src.astype(np.int64), src_T_cw, cam.K.copy())

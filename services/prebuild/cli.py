@@ -68,6 +68,7 @@ def run_prebuild(args) -> int:
     from services.geometry.camera import Camera
     from services.io.scans import load_scan
     from services.prebuild.builder import BuildConfig, build_map
+    from services.prebuild.patches import PATCH_FILE
     from services.prebuild.stella_map import CONFIG_FILE, MAP_FILE, check_map_dict, map_to_dict, write_config, write_map
     from services.relocalize.roi import RoiConfig, sample_positions
     from services.render.renderer import Renderer
@@ -96,7 +97,7 @@ def run_prebuild(args) -> int:
     from dataclasses import replace
 
     cfg = replace(base, stage=args.stage, orb=replace(base.orb, max_keypoints=args.max_keypoints))
-    m, stats = build_map(renderer, pos, cam, cfg, spacing=args.spacing)
+    m, stats, patches = build_map(renderer, pos, cam, cfg, spacing=args.spacing)
     if m.n_landmarks == 0:
         raise CliError("the map has no landmark (no keypoint was seen by two keyframes): try a smaller --spacing")
     problems = check_map_dict(map_to_dict(m))
@@ -106,6 +107,8 @@ def run_prebuild(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     size = write_map(m, out / MAP_FILE, legacy_keys=args.legacy_keys)
     write_config(out / CONFIG_FILE, m.cameras[cfg.camera_name], next(iter(m.orb_params.values())), args.max_keypoints)
+    if patches is not None:  # beside the map, for our light localizer; stella_vslam reads map.msg alone
+        patches.save(out / PATCH_FILE)
     total = time.perf_counter() - t0
     print(f"map {out}: {m.n_keyframes} keyframes, {m.n_landmarks:,} landmarks, {size / 1e6:.1f} MB, "
           f"built in {stats['build_s']:.1f} s ({total:.1f} s with loading); stella_vslam config {out / CONFIG_FILE}")

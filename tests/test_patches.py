@@ -1,0 +1,92 @@
+"""Landmark patches for the light localizer: the plane-homography warp and alignment against exact images,
+storage, and the map bundle carrying them."""
+
+import numpy as np
+import pytest
+
+from services.geometry.camera import Camera
+from services.geometry.se3 import Pose
+from services.prebuild.patches import LandmarkPatches, align_to_patches, sample_patches
+
+CAM = Camera(width=320, height=240, fx=260.0, fy=260.0, cx=159.5, cy=119.5)
+
+
+def _texture(seed: int = 0) -> np.ndarray:
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    t = cv2.GaussianBlur(rng.random((800, 800)).astype(np.float32), (0, 0), 2.0)
+    return (255 * (t - t.min()) / (t.max() - t.min())).astype(np.float32)
+
+
+def _image(tex: np.ndarray, T_wc: Pose, n: np.ndarray, d: float) -> np.ndarray:
+    """Exact image of the textured plane n.X = d (texture: 1 px per 5 mm in the plane's x/y, origin at the centre)."""
+    import cv2
+
+    u, v = np.meshgrid(np.arange(CAM.width, dtype=np.float64), np.arange(CAM.height, dtype=np.float64))
+    rays = np.stack([(u - CAM.cx) / CAM.fx, (v - CAM.cy) / CAM.fy, np.ones_like(u)], -1) @ T_wc.R.T
+    lam = (d - T_wc.t @ n) / (rays @ n)
+    X = T_wc.t + rays * lam[..., None]
+    e1 = np.cross(n, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    mx = (X @ e1 / 0.005 + 400).astype(np.float32)
+    my = (X @ e2 / 0.005 + 400).astype(np.float32)
+    return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def test_alignment_finds_the_landmarks_true_projection_through_the_plane_homography():
+    tex = _texture()
+    n = np.array([0.3, 0.0, -1.0])
+    n /= np.linalg.norm(n)
+    d = -3.0  # a slanted wall about 3 m in front of the source camera
+    src = Pose.identity()
+    live = Pose.from_rotvec_t(np.radians([2.0, -8.0, 1.0]), [0.35, 0.05, 0.2])  # another keyframe-to-live baseline
+    img_src, img_live = _image(tex, src, n, d), _image(tex, live, n, d)
+    rng = np.random.default_rng(1)
+    uv_src = rng.uniform([40, 40], [CAM.width - 40, CAM.height - 40], (60, 2))
+    rays = np.column_stack([(uv_src[:, 0] - CAM.cx) / CAM.fx, (uv_src[:, 1] - CAM.cy) / CAM.fy, np.ones(len(uv_src))])
+    P = rays * (d / (rays @ n))[:, None]  # landmarks on the plane (source = world frame)
+    size = 23
+    T_cw = src.inverse()
+    lp = LandmarkPatches(np.arange(len(P)), np.clip(sample_patches(img_src, uv_src, size) + 0.5, 0, 255).astype(np.uint8),
+                         np.tile(-n if n @ (src.t - P[0]) < 0 else n, (len(P), 1)), np.zeros(len(P), np.int64),
+                         np.column_stack([T_cw.R, T_cw.t])[None], CAM.K)
+    truth, _ = CAM.project(live.inverse().transform(P))
+    # the pose the localizer hands over is a little off: its projections start ~2 px from the truth
+    guess = (live @ Pose.from_rotvec_t(np.radians([0.3, 0.3, 0.0]), [0.0, 0.0, 0.0])).inverse()
+    start, _ = CAM.project(guess.transform(P))
+    q, ok = align_to_patches(lp, np.arange(len(P)), P, guess.R, guess.t, CAM.K, img_live)
+    assert ok.mean() > 0.8
+    err = np.linalg.norm(q[ok] - truth[ok], axis=1)
+    before = np.linalg.norm(start - truth, axis=1)
+    assert np.median(before) > 1.5 and np.median(err) < 0.1 and err.max() < 0.5, (np.median(before), np.median(err), err.max())
+    # a blank live frame has nothing to align to: nothing is reported as converged
+    _, ok_blank = align_to_patches(lp, np.arange(len(P)), P, guess.R, guess.t, CAM.K, np.full_like(img_live, 90.0))
+    assert not ok_blank.any()
+
+
+def test_patch_file_round_trip_and_clear_errors(tmp_path):
+    lp = LandmarkPatches(np.arange(3), np.zeros((3, 23, 23), np.uint8), np.tile([0.0, 0.0, -1.0], (3, 1)),
+                         np.zeros(3, np.int64), np.zeros((1, 3, 4)), CAM.K)
+    lp.save(tmp_path / "patches.npz")
+    back = LandmarkPatches.load(tmp_path / "patches.npz")
+    assert back.size == 23 and np.array_equal(back.lm_ids, lp.lm_ids) and np.allclose(back.normals, lp.normals)
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="not a landmark patch file"):
+        LandmarkPatches.load(tmp_path / "junk.npz")
+
+
+def test_bundle_carries_the_patches_when_present(tmp_path):
+    from services.io.bundle import pack_map_dir, unpack_bundle
+
+    d = tmp_path / "map"
+    d.mkdir()
+    (d / "map.msg").write_bytes(b"\x80")
+    (d / "config.yaml").write_text("Camera: {}\n")
+    assert pack_map_dir(d).files == ("map.msg", "config.yaml")  # an older map: no patches, still a bundle
+    (d / "patches.npz").write_bytes(b"patches")
+    b = pack_map_dir(d)
+    assert "patches.npz" in b.files
+    out = unpack_bundle(b.data, b.sha256, tmp_path / "cache")
+    assert (out / "patches.npz").read_bytes() == b"patches"
