@@ -126,3 +126,20 @@ def test_localizer_api_seed_and_lost_on_blank_frame(pnl_site, pnl_map):
 
     other = copy.copy(loc)  # the server shares one loaded map between clients
     assert other.idx is loc.idx and other._extractors is not loc._extractors and other.T_last is None
+
+
+def test_patches_of_another_map_are_refused(pnl_map, tmp_path):
+    import shutil
+
+    from services.localize.pnl import PnlConfig, PnlLocalizer
+    from services.prebuild.patches import LandmarkPatches
+
+    mapdir = tmp_path / "map"
+    shutil.copytree(pnl_map[0], mapdir)
+    assert PnlLocalizer.load(mapdir, PnlConfig()).patches is not None
+    lp = LandmarkPatches.load(mapdir / "patches.npz")
+    lp.map_fp = "0123456789abcdef"  # as if left over from an earlier build of the map
+    lp.save(mapdir / "patches.npz")
+    assert PnlLocalizer.load(mapdir, PnlConfig()).patches is None  # ignored, not used against the wrong landmarks
+    r = _cli("map", "check", mapdir)
+    assert r.returncode == 1 and "another map" in r.stdout

@@ -47,7 +47,7 @@ from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hammin
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 from services.localize.status import Status
-from services.prebuild.patches import PATCH_FILE, LandmarkPatches, align_to_patches
+from services.prebuild.patches import PATCH_FILE, LandmarkPatches, align_to_patches, map_fingerprint
 from services.prebuild.stella_map import StellaMap, read_map
 
 __all__ = ["PnlConfig", "PnlResult", "PnlLocalizer", "Status"]
@@ -235,10 +235,14 @@ class PnlLocalizer:
     def load(cls, map_dir: str | Path, cfg: PnlConfig = PnlConfig()) -> "PnlLocalizer":
         """The map of ``map_dir`` (``map.msg``, or the file itself), with its landmark patches when present."""
         p = Path(map_dir)
+        m = read_map(map_dir)
         patches = None
         if p.is_dir() and (p / PATCH_FILE).is_file():
             patches = LandmarkPatches.load(p / PATCH_FILE)
-        return cls(read_map(map_dir), cfg, patches)
+            if patches.map_fp != map_fingerprint(m.lm_ids, m.lm_pos):  # a stale sidecar must not move poses
+                log.warning("%s belongs to another map (fingerprint %s): patch alignment off", p / PATCH_FILE, patches.map_fp)
+                patches = None
+        return cls(m, cfg, patches)
 
     def __copy__(self) -> "PnlLocalizer":
         """A localizer over the same (read-only) map index with its own tracking state and extractors (one per client/thread)."""

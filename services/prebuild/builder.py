@@ -32,7 +32,7 @@ from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hammin
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose, look_at
 from services.log import progress
-from services.prebuild.patches import LandmarkPatches, sample_patches
+from services.prebuild.patches import LandmarkPatches, map_fingerprint, sample_patches
 from services.prebuild.stella_map import DEFAULT_ORB_NAME, MapCamera, MapKeyframe, OrbParams, StellaMap
 
 __all__ = ["BuildConfig", "view_poses", "build_map"]
@@ -366,6 +366,8 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
         keyframe_next_id=len(kf_ids), landmark_next_id=len(keep_obs), frame_next_id=len(kf_ids),
     )
     patches = _landmark_patches(views, obs_view, np.array(lm_src, np.int64), m.lm_pos, cam, cfg) if cfg.patch_size else None
+    if patches is not None:
+        patches.map_fp = map_fingerprint(m.lm_ids, m.lm_pos)
     stats = {"positions": int(len(positions)), "views": len(views), "keyframes": m.n_keyframes, "landmarks": m.n_landmarks,
              "observations": int(len(obs_all)), "candidates": int(len(obs_view)),
              "render_s": round(tm["render_s"], 2), "orb_s": round(tm["orb_s"], 2),

@@ -133,6 +133,33 @@ def run_check(args) -> int:
         print(f"OK {p}: {stats.get('keyframes')} keyframes, {stats.get('landmarks')} landmarks, "
               f"{stats.get('bytes', 0) / 1e6:.1f} MB; every stella_vslam loader rule holds"
               + ("" if stats.get("config") else " (no config.yaml beside it: not checked)"))
-    emit_summary({"map": str(p), "ok": not problems, "violations": len(problems),
-                  "rules": sorted({v.rule for v in problems}), **stats})
-    return 1 if problems else 0
+    patch_error = _check_patches(p) if p.is_dir() else None
+    if patch_error:
+        print(f"FAIL {patch_error}")
+    emit_summary({"map": str(p), "ok": not problems and not patch_error, "violations": len(problems),
+                  "rules": sorted({v.rule for v in problems}), "patches_error": patch_error, **stats})
+    return 1 if problems or patch_error else 0
+
+
+def _check_patches(map_dir) -> str | None:
+    """The landmark patches beside a map (our light localizer's sidecar): loadable and about this map's landmarks."""
+    import numpy as np
+
+    from services.prebuild.patches import PATCH_FILE, LandmarkPatches, map_fingerprint
+    from services.prebuild.stella_map import read_map
+
+    f = map_dir / PATCH_FILE
+    if not f.is_file():
+        return None
+    try:
+        lp = LandmarkPatches.load(f)
+    except ValueError as e:
+        return str(e)
+    m = read_map(map_dir)
+    if lp.map_fp != map_fingerprint(m.lm_ids, m.lm_pos):
+        return f"{f}: made for another map (fingerprint {lp.map_fp or 'none'}): rebuild the map, or delete it"
+    unknown = np.setdiff1d(lp.lm_ids, m.lm_ids)
+    if len(unknown):
+        return f"{f}: {len(unknown)} patches for landmarks the map does not have"
+    print(f"OK {f}: {len(lp.lm_ids):,} landmark patches of {lp.size}x{lp.size} px")
+    return None

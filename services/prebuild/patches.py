@@ -26,7 +26,7 @@ import numpy as np
 
 from services.io.atomic import atomic_write
 
-__all__ = ["PATCH_FILE", "PATCH_FORMAT_VERSION", "LandmarkPatches", "sample_patches", "align_to_patches"]
+__all__ = ["PATCH_FILE", "PATCH_FORMAT_VERSION", "LandmarkPatches", "map_fingerprint", "sample_patches", "align_to_patches"]
 
 PATCH_FILE = "patches.npz"
 PATCH_FORMAT_VERSION = 1
@@ -40,13 +40,15 @@ class LandmarkPatches:
     src: np.ndarray  # (N,) int32 index into src_T_cw
     src_T_cw: np.ndarray  # (V, 3, 4) float64 world-to-camera of the source keyframes
     K: np.ndarray  # (3, 3) float64 pinhole intrinsics of the source renders (undistorted)
+    map_fp: str = ""  # map_fingerprint() of the map these patches belong to
 
     @property
     def size(self) -> int:
         return int(self.patches.shape[1])
 
     def save(self, path: str | Path) -> None:
-        meta = {"format_version": PATCH_FORMAT_VERSION, "count": int(len(self.lm_ids)), "size": self.size}
+        meta = {"format_version": PATCH_FORMAT_VERSION, "count": int(len(self.lm_ids)), "size": self.size,
+                "map_fingerprint": self.map_fp}
         with atomic_write(path, "wb") as f:
             np.savez(f, lm_ids=self.lm_ids, patches=self.patches, normals=self.normals.astype(np.float32),
                      src=self.src.astype(np.int32), src_T_cw=self.src_T_cw, K=self.K, meta=np.array(json.dumps(meta)))
@@ -64,11 +66,21 @@ class LandmarkPatches:
             raise ValueError(f"{path}: landmark patches format {meta.get('format_version')} is not {PATCH_FORMAT_VERSION}; "
                              "rebuild the map")
         p = cls(arrays["lm_ids"].astype(np.int64), arrays["patches"], arrays["normals"].astype(np.float64),
-                arrays["src"].astype(np.int64), arrays["src_T_cw"].astype(np.float64), arrays["K"].astype(np.float64))
+                arrays["src"].astype(np.int64), arrays["src_T_cw"].astype(np.float64), arrays["K"].astype(np.float64),
+                str(meta.get("map_fingerprint", "")))
         n = len(p.lm_ids)
         if p.patches.shape[0] != n or p.normals.shape != (n, 3) or len(p.src) != n or (n and p.src.max() >= len(p.src_T_cw)):
             raise ValueError(f"{path}: inconsistent landmark patch arrays")
         return p
+
+
+def map_fingerprint(lm_ids: np.ndarray, lm_pos: np.ndarray) -> str:
+    """Which map a patch file belongs to: a hash of the landmarks' ids and positions (to the millimetre)."""
+    import hashlib
+
+    h = hashlib.sha256(np.ascontiguousarray(lm_ids, np.int64).tobytes())
+    h.update(np.round(np.asarray(lm_pos, np.float64) * 1000).astype(np.int64).tobytes())
+    return h.hexdigest()[:16]
 
 
 def sample_patches(img: np.ndarray, centres: np.ndarray, size: int) -> np.ndarray:
