@@ -67,7 +67,9 @@ class RMConfig:
     max_holes: float = 0.35  # a keyframe render with more holes than this is redone at half resolution ...
     coarse_levels: int = 2  # ... at most this many times (sparse scans, far surfaces, views through windows)
     reloc_candidates: int = 8
+    reloc_check: int = 32  # a relocalization is refused when views ranked up to this hold a rival place
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
+    gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
     edge_window: int = 5  # pixels: a keypoint's depth must be smooth over this window of the render ...
     edge_rel_depth: float = 0.05  # ... within this fraction of its depth (rejects depth edges); 0 = off
@@ -435,10 +437,16 @@ class RenderMatchTracker:
         if not self._good(r) and self.db is not None:
             feats = self._live(fr, self._base_scale(camera))
             t0 = time.perf_counter()
-            coarse, _ = self.db.localize(feats, camera, k=self.cfg.reloc_candidates, min_inliers=max(15, self.cfg.min_inliers // 2))
+            min_inl = max(15, self.cfg.min_inliers // 2)
+            coarse, _ = self.db.localize(feats, camera, k=self.cfg.reloc_candidates, min_inliers=min_inl, check=0)
             fr.tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
             fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
             r = self._render_and_refine(fr, coarse.T_wc, self.cfg.reloc_refine_rounds) if coarse is not None else None
+            if self._good(r):  # about to be reported: is there another place it fits as well? (repetitive sites)
+                t0 = time.perf_counter()
+                if self.db.has_rival(feats, camera, coarse, self.cfg.reloc_candidates, self.cfg.reloc_check, min_inl):
+                    r = None
+                fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1
@@ -452,6 +460,11 @@ class RenderMatchTracker:
                                float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm)
         if consecutive and status == Status.TRACKING:
             self.motion = (self.T_last.inverse() @ r.T_wc, stamp - self.stamp_last)
+        elif (status == Status.RELOCALIZED and self.recent is not None and stamp is not None and self.recent[1] is not None
+              and 0 < stamp - self.recent[1] <= self.cfg.gap_motion_s):
+            # back after a short LOST gap (typically a fast turn): the mean motion over the gap predicts the
+            # next frame and its blur better than none
+            self.motion = (self.recent[0].inverse() @ r.T_wc, stamp - self.recent[1])
         else:
             self.motion = None
         self.T_last, self.stamp_last, self.recent, self.recover_kf = r.T_wc, stamp, None, None

@@ -83,6 +83,19 @@ class RelocDB:
         sim = self.vlad @ q
         return np.argsort(-sim)[:k]
 
+    def _solve_views(self, feats: Features, camera: Camera, views, min_inliers: int,
+                     max_error_px: float) -> list[tuple[PnpResult, int]]:
+        out = []
+        for v in views:
+            xyz, desc = self.view(v)
+            m = mutual_nn(feats.desc, desc, min_cos=0.8)
+            if len(m) < min_inliers:
+                continue
+            r = solve_pnp(feats.kpts[m[:, 0]], xyz[m[:, 1]], camera, max_error_px=max_error_px)
+            if r is not None and r.n_inliers >= min_inliers:
+                out.append((r, int(v)))
+        return out
+
     def localize(self, feats: Features, camera: Camera, k: int = 8, min_inliers: int = 30,
                  max_error_px: float = 3.0, ambiguity: float = 0.8, check: int = 32) -> tuple[PnpResult | None, int]:
         """Coarse pose of a query: match against the top-``k`` views, PnP-RANSAC; best by inliers. Returns (result, view).
@@ -90,38 +103,38 @@ class RelocDB:
         Repetitive sites (identical rack aisles, office floors) give several self-consistent poses at
         different places. When a pose more than 1 m or 20 degrees away from the best one has at least
         ``ambiguity`` times its inliers, the place is ambiguous and the answer is None, not a coin toss.
-        Rivals are sought among the top-``check`` views, not only the ``k`` searched: in the simulated
-        warehouse the true aisle was outside the top 8 twice, and a wrong aisle 24-30 m away was accepted
-        and then confirmed by its own render (measured: the top 32 held the rival both times). The extra
-        views are matched only when a pose was found, so it costs nothing while the frame stays LOST.
+        Rivals are sought among the top-``check`` views, not only the ``k`` searched (``has_rival``).
         """
-        order = self.candidates(feats, max(k, check))
-
-        def solve(views) -> list[tuple[PnpResult, int]]:
-            out = []
-            for v in views:
-                xyz, desc = self.view(v)
-                m = mutual_nn(feats.desc, desc, min_cos=0.8)
-                if len(m) < min_inliers:
-                    continue
-                r = solve_pnp(feats.kpts[m[:, 0]], xyz[m[:, 1]], camera, max_error_px=max_error_px)
-                if r is not None and r.n_inliers >= min_inliers:
-                    out.append((r, int(v)))
-            return out
-
-        results = solve(order[:k])
+        order = self.candidates(feats, k)
+        results = self._solve_views(feats, camera, order, min_inliers, max_error_px)
         if not results:
             return None, -1
-        results += solve(order[k:])
         results.sort(key=lambda rv: -rv[0].n_inliers)
         best, best_view = results[0]
-        for r, v in results[1:]:
+        if self._rival_in(best, best_view, results[1:], ambiguity) or (
+                check > k and self.has_rival(feats, camera, best, k, check, min_inliers, max_error_px, ambiguity)):
+            return None, -1
+        return best, best_view
+
+    def has_rival(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
+                  min_inliers: int = 30, max_error_px: float = 3.0, ambiguity: float = 0.8) -> bool:
+        """Whether views ranked ``skip``..``check`` for this query hold another place that fits it about as
+        well as ``best``. In the simulated warehouse the true aisle ranked outside the top 8 twice, and a
+        wrong aisle 24-30 m away was accepted and then confirmed by its own render; the top 32 held a rival
+        both times. Callers that refine the coarse pose first (Render & Match) ask only once it passed,
+        so a LOST stretch does not pay for it on every frame."""
+        order = self.candidates(feats, check)[skip:]
+        return self._rival_in(best, -1, self._solve_views(feats, camera, order, min_inliers, max_error_px), ambiguity)
+
+    @staticmethod
+    def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float) -> bool:
+        for r, v in others:
             dt, dr = best.T_wc.distance_to(r.T_wc)
             if (dt > 1.0 or dr > 20.0) and r.n_inliers >= ambiguity * best.n_inliers:
                 log.info("relocalization ambiguous: %d inliers at view %d and %d at view %d, %.1f m / %.0f deg apart",
                          best.n_inliers, best_view, r.n_inliers, v, dt, dr)
-                return None, -1
-        return best, best_view
+                return True
+        return False
 
     # ---- storage -----------------------------------------------------------
     def save(self, path: str | Path) -> None:
