@@ -12,7 +12,7 @@ refines its pose. Gates on inliers and reprojection error turn weak solutions in
 guess. With no pose (first frame, after LOST) the relocalization database gives a coarse pose,
 which a render at that pose refines before tracking starts.
 
-Two things keep it accurate where a plain render-and-match is not:
+Three things keep it accurate where a plain render-and-match is not:
 - **Motion blur.** In a fast turn the live frame is blurred and its features move (measured: a
   2-3 px systematic shift, a third of the matches lost). With frame timestamps the tracker knows
   the camera's motion (constant velocity from the last two poses), so it blurs the keyframe render
