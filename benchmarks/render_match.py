@@ -29,6 +29,7 @@ from services.io.scans import load_scan  # noqa: E402
 from services.io.sequence import open_sequence  # noqa: E402
 from services.io.trajectory import Trajectory  # noqa: E402
 from services.localize.render_match import RenderMatchTracker, RMConfig, Status  # noqa: E402
+from services.localize.runner import localize_sequence  # noqa: E402
 from services.relocalize.database import build_database  # noqa: E402
 from services.relocalize.roi import RoiConfig, sample_positions  # noqa: E402
 from services.render.renderer import Renderer  # noqa: E402
@@ -43,17 +44,7 @@ def run(scan, seq, stage: str, frames: int, max_side: int, top_k: int, spacing: 
     db = build_database(renderer, sample_positions(scan, RoiConfig(spacing=spacing)), ext)
     db_s = time.perf_counter() - t0
     tracker = RenderMatchTracker(renderer, ext, db, cfg)
-    traj, counts, stage_ms = Trajectory(), {s: 0 for s in Status}, {}
-    t0 = time.perf_counter()
-    for i in range(frames):
-        f = seq.read(i)
-        r = tracker.process(f.image, seq.camera, stamp=float(f.stamp))
-        counts[r.status] += 1
-        for k, v in r.timings.items():
-            stage_ms[k] = stage_ms.get(k, 0.0) + v / frames
-        if r.T_wc is not None:
-            traj.append(f.stamp, r.T_wc)
-    wall = time.perf_counter() - t0
+    traj, counts, stage_ms, wall = localize_sequence(tracker, seq, frames, stamped=True)
     gt = seq.groundtruth
     a = compute_ape(Trajectory(gt.stamps[:frames], gt.poses[:frames]), traj, "none") if len(traj) else None
     return {"localized": len(traj), "frames": frames, "reloc": counts[Status.RELOCALIZED], "fps": frames / wall,

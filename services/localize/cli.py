@@ -112,13 +112,6 @@ def run_build_db(args) -> int:
     return 0
 
 
-def _seconds(stamp: str) -> float | None:
-    try:
-        return float(stamp)
-    except ValueError:
-        return None
-
-
 def run_localize(args) -> int:
     from services.cli import CliError
 
@@ -128,17 +121,11 @@ def run_localize(args) -> int:
         return run_localize_pnl(args)
     if not args.db:
         raise CliError("--method rm needs --db (a relocalization database from 'cristal build-db')")
-    import time
-
-    import numpy as np
-
-    from services.cli import emit_summary
     from services.features.xfeat import XFeatExtractor
     from services.io.scans import load_scan
     from services.io.sequence import open_sequence
-    from services.io.trajectory import Trajectory, write_tum
-    from services.localize.render_match import RenderMatchTracker, RMConfig, Status
-    from services.log import progress
+    from services.localize.render_match import RenderMatchTracker, RMConfig
+    from services.localize.runner import localize_and_report
     from services.relocalize.database import RelocDB
     from services.render.renderer import Renderer
 
@@ -150,31 +137,4 @@ def run_localize(args) -> int:
     max_side = args.max_side if args.max_side else (None if renderer.device.type == "cuda" else 480)
     cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100)
     tracker = RenderMatchTracker(renderer, XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side), db, cfg)
-    n = min(len(seq), args.frames or len(seq))
-    traj = Trajectory()
-    counts = {s: 0 for s in Status}
-    stage: dict[str, float] = {}
-    t0 = time.perf_counter()
-    for i, frame in enumerate(progress(seq, desc="localizing", total=n, unit="frame")):
-        if i >= n:
-            break
-        r = tracker.process(frame.image, seq.camera, stamp=_seconds(frame.stamp))
-        counts[r.status] += 1
-        for k, v in r.timings.items():
-            stage[k] = stage.get(k, 0.0) + v / n
-        if r.T_wc is not None:
-            traj.append(frame.stamp, r.T_wc)
-    dt = time.perf_counter() - t0
-    write_tum(args.out, traj, header=f"cristal localize --method {args.method}: camera-to-world in the scan frame")
-    print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {counts[Status.LOST]} lost), "
-          f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
-    summary = {"out": args.out, "frames": n, "localized": len(traj), "relocalizations": counts[Status.RELOCALIZED],
-               "lost": counts[Status.LOST], "fps": round(n / dt, 2), **{k: round(v, 2) for k, v in stage.items()}}
-    if seq.groundtruth is not None and len(traj):
-        from services.eval.ape import ape_first_frames
-
-        line, fields = ape_first_frames(seq.groundtruth, traj, n)
-        print(line)
-        summary.update(fields)
-    emit_summary(summary)
-    return 0 if len(traj) else 1
+    return localize_and_report(tracker, seq, args, args.method, stamped=True)

@@ -508,29 +508,30 @@ class PnlLocalizer:
             # refine poses that are reported anyway; the gates keep judging the keypoint solution, so an
             # alignment (whose residuals are smaller) never turns a weak frame into a reported one
             t4 = time.perf_counter()
-            R2, t2, inl2, _ = self._aligned(fr, R, t, lm, kp, inl, rmse)
-            self._sigma = r[4:]
+            R, t = self._aligned(fr, R, t, lm, kp, inl)
+            self._sigma = r[4:]  # the solve inside overwrote it
             tm["align_ms"] = 1e3 * (time.perf_counter() - t4)
-            r = (R2, t2, *r[2:])
+            r = (R, t, *r[2:])
         return r
 
-    def _aligned(self, fr: _Frame, R: np.ndarray, t: np.ndarray, lm: np.ndarray, kp: np.ndarray, inl: np.ndarray, rmse: float):
-        """Re-measure the inlier matches by aligning the live frame to the landmarks' patches, then solve again
-        (see :mod:`services.prebuild.patches`). Matches whose patch does not align keep their keypoint."""
+    def _aligned(self, fr: _Frame, R: np.ndarray, t: np.ndarray, lm: np.ndarray, kp: np.ndarray,
+                 inl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pose (R, t) solved again after re-measuring the inlier matches by aligning the live frame to the
+        landmarks' patches (see :mod:`services.prebuild.patches`); the given pose when that does not hold up.
+        Matches whose patch does not align keep their keypoint."""
         pidx = self._patch_of_row[lm]
         sel = np.flatnonzero(inl & (pidx >= 0))
         if len(sel) > self.cfg.align_max:  # enough for the pose; keep the cost bounded (finest octaves first)
             sel = sel[np.argsort(fr.feats.octaves[kp[sel]], kind="stable")[: self.cfg.align_max]]
         if len(sel) < self.cfg.min_inliers:
-            return R, t, inl, rmse
+            return R, t
         q, ok = align_to_patches(self.patches, pidx[sel], self.idx.pos[lm[sel]], R, t, fr.K, self._gray(fr).astype(np.float32))
         if ok.sum() < self.cfg.min_inliers // 2:
-            return R, t, inl, rmse
+            return R, t
         uv = fr.uv[kp].copy()
         w = fr.inv_sigma2[kp].copy()
         uv[sel[ok]] = q[ok]
         w[sel[ok]] = 1.0  # a patch alignment is a level-0 measurement, whatever the keypoint's octave
-        keep_sigma = self._sigma
         R2, t2, inl2, rmse2 = self._optimize(fr, R, t, lm, kp, rounds=(3, 1), uv=uv, w_oct=w)
         # each measurement moved by at most a couple of pixels, so must the landmarks' projections: a solve
         # that moves them further (few points, a degenerate set after the outlier rounds) is not kept
@@ -538,9 +539,8 @@ class PnlLocalizer:
         X1, X2 = P @ R.T + t, P @ R2.T + t2
         moved = np.median(np.linalg.norm(fr.K[0, 0] * (X1[:, :2] / X1[:, 2:3] - X2[:, :2] / np.maximum(X2[:, 2:3], 1e-6)), axis=1))
         if inl2.sum() < self.cfg.min_inliers or not np.isfinite(rmse2) or not moved <= 2.0:
-            self._sigma = keep_sigma
-            return R, t, inl, rmse
-        return R2, t2, inl2, rmse2
+            return R, t
+        return R2, t2
 
     def _gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey, undistorted like its keypoints."""
