@@ -127,14 +127,18 @@ def test_sparse_scan_renders_coarser_keyframes(rm_setup):
     from services.localize.render_match import _Frame
     from services.render.renderer import Renderer
 
+    from services.render.depth_sampling import support_fraction
+
     renderer, ext, _, seq, _ = rm_setup
-    sparse = Renderer(random_decimate(load_scan(renderer_scan_path(seq)), 0.03))
+    sparse = Renderer(random_decimate(load_scan(renderer_scan_path(seq)), 0.005))
     tr = RenderMatchTracker(sparse, ext)
     T = seq.groundtruth.poses[0]
     kf = tr._keyframe(T, _Frame(seq.read(0).image, seq.camera, {}, None, 0.0, None))
-    full_res_holes = sparse.render(T, seq.camera).hole_fraction
-    assert full_res_holes > tr.cfg.max_holes
-    assert kf.scale < tr._base_scale(seq.camera) and kf.render.hole_fraction < full_res_holes - 0.1
+    # too far from any point for the depth to be interpolated: most of the frame at full resolution
+    out_of_reach = 1.0 - support_fraction(sparse.render(T, seq.camera).measured, tr.cfg.depth_radius)
+    assert out_of_reach > tr.cfg.max_holes
+    assert kf.scale < tr._base_scale(seq.camera)
+    assert 1.0 - support_fraction(kf.render.measured, tr.cfg.depth_radius) < out_of_reach - 0.1
 
 
 def renderer_scan_path(seq):

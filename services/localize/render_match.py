@@ -2,8 +2,9 @@
 
 Per frame: XFeat on the live frame; match against the features of a *keyframe render* (the scan
 rendered at a recent pose with this frame's own intrinsics and distortion); back-project the
-render's matched pixels with its measured depth into world points; PnP-RANSAC with non-linear
-refinement. Every measurement comes from the scan, so nothing drifts.
+render's matched pixels into world points with the depth of the scan points around them (a plane
+fitted within a few pixels, so keypoints between the points of a sparse render count; none on a
+depth edge); PnP-RANSAC with non-linear refinement. Every measurement comes from the scan, so nothing drifts.
 
 Work is reused: one render and its features serve several live frames while the camera stays
 near the keyframe pose and matches stay plentiful; when the pose moves away (or matching
@@ -46,8 +47,9 @@ from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.localize.status import Status
+from services.render.depth_sampling import plane_depth, support_fraction
 
-__all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "smooth_depth", "normalised_gray", "refine_matches_lk"]
+__all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "normalised_gray", "refine_matches_lk"]
 
 log = logging.getLogger(__name__)
 
@@ -64,15 +66,15 @@ class RMConfig:
     rerender_m: float = 0.15  # re-render when the pose is this far from the keyframe ...
     rerender_deg: float = 6.0  # ... or turned this much
     rerender_inlier_ratio: float = 0.4  # ... or inliers fell below this fraction of the keyframe's first match
-    max_holes: float = 0.35  # a keyframe render with more holes than this is redone at half resolution ...
+    max_holes: float = 0.35  # a keyframe render with more pixels than this beyond depth_radius of any point is redone at half resolution ...
     coarse_levels: int = 2  # ... at most this many times (sparse scans, far surfaces, views through windows)
     reloc_candidates: int = 8
     reloc_check: int = 32  # a relocalization is refused when views ranked up to this hold a rival place
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
-    edge_window: int = 5  # pixels: a keypoint's depth must be smooth over this window of the render ...
-    edge_rel_depth: float = 0.05  # ... within this fraction of its depth (rejects depth edges); 0 = off
+    depth_radius: int = 4  # render pixels: a keypoint's depth is a plane fitted to the scan points this close ...
+    depth_max_residual: float = 0.01  # ... all within this fraction of their depth of it (a depth edge is refused)
     exposure_s: float | None = None  # camera exposure time; None: per frame from the caller, else calibrated
     blur_min_px: float = 6.0  # blur the keyframe render when the frame's predicted blur exceeds this (frame pixels)
     calib_min_px: float = 10.0  # frames moving at least this much per frame interval calibrate the exposure ...
@@ -107,21 +109,6 @@ class FrameResult:
     sigma_m: float = float("nan")  # predicted 1-sigma camera-centre uncertainty
     sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
     blur_px: float = 0.0  # predicted motion blur of the frame (pixels) the render was blurred with
-
-
-def smooth_depth(depth: np.ndarray, uv: np.ndarray, window: int, rel: float) -> np.ndarray:
-    """True where the measured depth around pixel ``uv`` spans less than ``rel`` of its value.
-
-    A keypoint on a depth discontinuity back-projects to whichever side its pixel happens to fall on:
-    a biased point that is not a gross outlier, so RANSAC keeps it. A plane seen at up to ~75 degrees passes.
-    """
-    k = cv2.getStructuringElement(cv2.MORPH_RECT, (window, window))
-    d = depth.astype(np.float32)
-    dmax = cv2.dilate(d, k)
-    dmin = cv2.erode(np.where(d > 0, d, np.float32(np.inf)), k)
-    px = np.clip(np.round(uv).astype(int), 0, [d.shape[1] - 1, d.shape[0] - 1])
-    lo, hi = dmin[px[:, 1], px[:, 0]], dmax[px[:, 1], px[:, 0]]
-    return np.isfinite(lo) & (hi - lo <= rel * lo)
 
 
 def normalised_gray(image: np.ndarray, size: tuple[int, int] | None = None) -> np.ndarray:
@@ -219,24 +206,27 @@ class RenderMatchTracker:
         return fr.live[scale]
 
     def _points(self, render, rgb: np.ndarray, tm: dict) -> tuple[Features, np.ndarray]:
-        """Features of a render image with the world points behind them (measured, smooth depth only)."""
+        """Features of a render image with the world points behind them (depth from the scan points around
+        each keypoint, none on a depth edge)."""
         t0 = time.perf_counter()
         f = self.extractor.extract(rgb)
-        X, ok = render.backproject(f.kpts.astype(np.float64))
-        if self.cfg.edge_rel_depth > 0:
-            ok &= smooth_depth(render.depth, f.kpts, self.cfg.edge_window, self.cfg.edge_rel_depth)
+        uv = f.kpts.astype(np.float64)
+        z, ok = plane_depth(render.depth, uv, self.cfg.depth_radius, self.cfg.depth_max_residual)
+        X = render.T_wc.transform(render.camera.backproject(uv, z))
         tm["kf_features_ms"] = tm.get("kf_features_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         return f.subset(ok), X[ok]
 
     def _keyframe(self, T_wc: Pose, fr: _Frame) -> Keyframe:
-        """Render at ``T_wc``; coarser while the render is mostly holes (sparse scans)."""
+        """Render at ``T_wc``; coarser while most of the render is too far from any scan point for its
+        depth to be interpolated (sparse scans, far surfaces)."""
         s = self._base_scale(fr.camera)
         for level in range(self.cfg.coarse_levels + 1):
             cam = fr.camera.scaled(s) if s != 1.0 else fr.camera
             t0 = time.perf_counter()
             r = self.renderer.render(T_wc, cam)
             fr.tm["render_ms"] = fr.tm.get("render_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
-            if r.hole_fraction <= self.cfg.max_holes or level == self.cfg.coarse_levels or min(cam.width, cam.height) < 128:
+            holes = 1.0 - support_fraction(r.measured, self.cfg.depth_radius)
+            if holes <= self.cfg.max_holes or level == self.cfg.coarse_levels or min(cam.width, cam.height) < 128:
                 break
             s /= 2
         feats, xyz = self._points(r, r.rgb, fr.tm)

@@ -4,8 +4,10 @@ Paper section "Prebuild & Localize". Positions on a uniform grid in the region o
 sampler the relocalization database uses); at each, views with the target camera's intrinsics
 (without its distortion, so keypoints are already undistorted) covering every yaw direction, two
 per direction (pitched up and down), rendered by the neural renderer. ORB with stella_vslam's
-settings on each view; keypoints with trustworthy measured depth (no depth edge in their 5x5
-neighbourhood) are back-projected to world points.
+settings on each view; each keypoint gets its depth (and surface normal) from a plane fitted to the
+scan points within a few pixels, so keypoints between the points of a sparse render count too, and
+none is made where those points do not lie on one plane (a depth edge): see
+:mod:`services.render.depth_sampling`.
 
 Merging: every keyframe's candidate points are projected into each nearby keyframe (close position,
 overlapping view direction); a point matches a keypoint there when that keypoint lies within the
@@ -34,6 +36,7 @@ from services.geometry.se3 import Pose, look_at
 from services.log import progress
 from services.prebuild.patches import LandmarkPatches, map_fingerprint, sample_patches
 from services.prebuild.stella_map import DEFAULT_ORB_NAME, MapCamera, MapKeyframe, OrbParams, StellaMap
+from services.render.depth_sampling import plane_depth, plane_normals
 
 __all__ = ["BuildConfig", "view_poses", "build_map"]
 
@@ -47,7 +50,8 @@ class BuildConfig:
     stage: str = "full"  # renderer stage: "full" (neural) or "splat" (ablation) or "filter"
     orb: OrbSettings = field(default_factory=lambda: OrbSettings(max_keypoints=2000))
     distribution_cell: int | None = None  # px; None: 10 at 640 px width, scaled with the width
-    max_depth_step: float = 0.03  # relative depth spread allowed in a keypoint's 5x5 neighbourhood
+    depth_radius: int = 4  # px: a keypoint's depth and normal come from a plane fitted to the scan points this close ...
+    depth_max_residual: float = 0.01  # ... all within this fraction of their depth of it (no landmark on a depth edge)
     window_px: float = 1.5  # merge: keypoint within the 3x3 window around the projection
     max_hamming: int = 64  # merge: descriptor distance
     depth_tol: float = 0.03  # merge: relative depth agreement of the two back-projected points
@@ -86,34 +90,6 @@ class _View:
     uvc: np.ndarray  # (N, 2) level-0 pixel centres of the keypoints
     gray: np.ndarray | None = None  # the render in grey (landmark patches)
     normals: np.ndarray | None = None  # (N, 3) world surface normals at the keypoints, towards the camera
-
-
-def _normals(render, uv: np.ndarray, step: float = 3.0) -> np.ndarray:
-    """World surface normals at pixels ``uv`` from the render's depth (central differences ``step`` px
-    apart), turned towards the camera; facing the camera where a neighbour has no depth."""
-    d = np.array([[step, 0.0], [-step, 0.0], [0.0, step], [0.0, -step]])
-    X = [render.backproject(uv + o) for o in d]
-    ok = np.logical_and.reduce([x[1] for x in X])
-    n = np.cross(X[0][0] - X[1][0], X[2][0] - X[3][0])
-    centre, _ = render.backproject(uv)
-    view = render.T_wc.t - centre
-    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-9)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    ok &= norm[:, 0] > 1e-12
-    n = np.where(ok[:, None], n / np.maximum(norm, 1e-12), view)
-    return np.where((np.einsum("ij,ij->i", n, view) < 0)[:, None], -n, n)
-
-
-def _depth_ok(depth: np.ndarray, uv: np.ndarray, max_step: float) -> np.ndarray:
-    """Measured depth at and around each pixel (5x5) and no depth edge there."""
-    H, W = depth.shape
-    k = np.ones((5, 5), np.uint8)
-    dmax = cv2.dilate(depth, k)
-    dmin = cv2.erode(np.where(depth > 0, depth, np.float32(1e6)).astype(np.float32), k)
-    px = np.clip(np.round(uv).astype(int), 0, [W - 1, H - 1])
-    c = depth[px[:, 1], px[:, 0]]
-    lo, hi = dmin[px[:, 1], px[:, 0]], dmax[px[:, 1], px[:, 0]]
-    return (c > 0) & (lo < 1e5) & ((hi - lo) <= max_step * c)
 
 
 class _UnionFind:
@@ -158,13 +134,17 @@ def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera
         t1 = time.perf_counter()
         gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
         f = ext.extract_stella(gray)  # descriptors exactly as stella_vslam computes them
-        ok = _depth_ok(r.depth, f.kpts, cfg.max_depth_step)
-        f = f.subset(np.flatnonzero(ok))
+        # depth from the scan points around each keypoint: also between the points of a sparse render
         uvc = level_centres(f.kpts, f.octaves, cfg.orb.scale_factor)
-        X, _ = r.backproject(uvc)
-        z = T.inverse().transform(X)[:, 2]
-        views.append(_View(T, f, X, z, pi, uvc, gray if cfg.patch_size else None,
-                           _normals(r, uvc) if cfg.patch_size else None))
+        z, ok, planes = plane_depth(r.depth, uvc, cfg.depth_radius, cfg.depth_max_residual, return_plane=True)
+        sel = np.flatnonzero(ok)
+        f, uvc, z = f.subset(sel), uvc[sel], z[sel]
+        X = T.transform(r.camera.backproject(uvc, z))
+        normals = None
+        if cfg.patch_size:
+            c = r.camera
+            normals = plane_normals(uvc, planes[sel], c.fx, c.fy, c.cx, c.cy) @ T.R.T  # world axes
+        views.append(_View(T, f, X, z, pi, uvc, gray if cfg.patch_size else None, normals))
         tm["render_s"] += t1 - t0
         tm["orb_s"] += time.perf_counter() - t1
     return views, tm

@@ -2,7 +2,8 @@
 
 Built offline (``cristal build-db``): at every position sampled in the region of interest, the
 neural renderer draws the horizontal cubemap faces (optionally up and down); XFeat runs on each
-face; keypoints with measured depth are back-projected to world points. Each face also gets a
+face; keypoints are back-projected to world points with the depth of the scan points around them
+(a plane fitted within a few pixels, none on a depth edge: services.render.depth_sampling). Each face also gets a
 VLAD global descriptor over a small vocabulary learnt from the database itself, so a query
 compares one vector per view before matching features against a handful of candidates: this
 keeps relocalization fast with thousands of cubemaps (a 60 x 40 m site).
@@ -28,6 +29,7 @@ from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write
 from services.log import progress
+from services.render.depth_sampling import plane_depth
 
 __all__ = ["RelocDB", "DBConfig", "build_database", "DB_FORMAT_VERSION"]
 
@@ -41,6 +43,8 @@ class DBConfig:
     faces: str = "horizontal"  # "horizontal" (4 faces) or "all" (6)
     top_k: int = 1024  # XFeat keypoints per face
     vocabulary: int = 32  # VLAD words
+    depth_radius: int = 4  # px: a keypoint's depth is a plane fitted to the scan points this close ...
+    depth_max_residual: float = 0.01  # ... within this fraction of their depth (see services.render.depth_sampling)
 
 
 def _vlad(desc: np.ndarray, vocab: np.ndarray) -> np.ndarray:
@@ -173,7 +177,9 @@ def build_database(renderer, positions: np.ndarray, extractor: XFeatExtractor, c
         for T in cubemap_poses(p)[:n_faces]:
             r = renderer.render(T, cam)
             f = extractor.extract(r.rgb, top_k=cfg.top_k)
-            X, ok = r.backproject(f.kpts.astype(np.float64))
+            uv = f.kpts.astype(np.float64)
+            z, ok = plane_depth(r.depth, uv, cfg.depth_radius, cfg.depth_max_residual)
+            X = T.transform(cam.backproject(uv, z))
             poses.append(T.to_tum())
             xyzs.append(X[ok])
             descs.append(f.desc[ok])
