@@ -165,6 +165,26 @@ def test_measured_depth_backprojects_onto_true_surfaces(site_renderer):
     assert np.median(err) < 0.01 and np.mean(err < 0.05) > 0.97
 
 
+def test_grow_colours_closes_gaps_between_points_only():
+    from services.render.renderer import _grow_cv2, _grow_torch, grow_colours
+
+    H, W = 48, 64
+    v, u = np.mgrid[0:H, 0:W]
+    rgb = torch.zeros(1, 3, H, W)
+    rgb[0, 2] = 1.0  # a blue surface ...
+    pts = (u % 4 == 0) & (v % 2 == 0) & (u < 32)  # ... scanned in columns 4 px apart, on the left half only
+    mask = torch.from_numpy(pts.astype(np.float32))[None, None]
+    before = mask.clone()
+    c, m = grow_colours(rgb, mask, 3)
+    assert torch.equal(mask, before)  # the caller's mask is not touched
+    assert bool(m[0, 0, :, :32].all())  # the gaps between the columns are closed ...
+    assert torch.allclose(c[0, :, :, :32], rgb[0, :, :, :32])  # ... with the surface's colour
+    assert not bool(m[0, 0, :, 36:].any())  # nothing grows beyond the radius
+    c2, m2 = _grow_torch(rgb, mask, 3)  # the CUDA path's steps, here on the CPU
+    assert torch.equal(m2, m) and torch.allclose(c2, c, atol=1e-6)
+    assert torch.equal(_grow_cv2(rgb, mask, 3)[1], m)
+
+
 def test_plane_depth_interpolates_planes_and_refuses_edges():
     from services.render.depth_sampling import plane_depth, support_fraction
 
@@ -185,6 +205,7 @@ def test_plane_depth_interpolates_planes_and_refuses_edges():
     half = np.where(u <= 40, sparse, 0.0)
     _, ok = plane_depth(half, np.array([[42.0, 30.0], [38.5, 30.0]]), radius=4)
     assert ok.tolist() == [False, True]
+    assert [len(x) for x in plane_depth(sparse, np.zeros((0, 2)), return_plane=True)] == [0, 0, 0]  # a view with no keypoints
 
 
 def test_plane_depth_backprojects_sparse_renders_onto_true_surfaces(site_renderer):

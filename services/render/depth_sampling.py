@@ -30,7 +30,7 @@ def plane_depth(depth: np.ndarray, uv: np.ndarray, radius: int = 4, max_residual
     H, W = depth.shape
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if len(uv) == 0:
-        return np.zeros(0), np.zeros(0, bool)
+        return (np.zeros(0), np.zeros(0, bool), np.zeros((0, 3))) if return_plane else (np.zeros(0), np.zeros(0, bool))
     px = np.clip(np.round(uv).astype(np.int64), 0, [W - 1, H - 1])
     o = np.arange(-radius, radius + 1)
     du, dv = (a.ravel() for a in np.meshgrid(o, o))

@@ -17,6 +17,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -29,7 +30,7 @@ from services.render.depth_filter import FilterConfig, fill_depth, hierarchical_
 from services.render.splat import SplatConfig, splat
 from services.render.unet import load_holefill
 
-__all__ = ["RenderConfig", "Render", "Renderer", "STAGES", "cubemap_poses"]
+__all__ = ["RenderConfig", "Render", "Renderer", "STAGES", "cubemap_poses", "grow_colours"]
 
 log = logging.getLogger(__name__)
 STAGES = ("splat", "filter", "full")
@@ -41,6 +42,7 @@ class RenderConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
     weights: str | None = None  # hole-filling weights; None = the shipped default
     holefill_scale: float | None = None  # U-Net at this fraction of the resolution; None: 1 on CUDA, 0.5 on the CPU
+    grow_px: float = 6.0  # before the U-Net, points' colours grow into holes up to this far (px at 640 wide; 0 = off)
 
 
 @dataclass
@@ -126,7 +128,9 @@ class Renderer:
         mask = keep[None, None].float()
         t0 = time.perf_counter()
         if stage == "full":
-            rgb01 = self._holefill(rgb01, mask, depth[None, None])
+            radius = round(self.cfg.grow_px * camera.width / 640)
+            grown, gmask = grow_colours(rgb01, mask, radius) if radius > 0 else (rgb01, mask)
+            rgb01 = self._holefill(grown, gmask, depth[None, None])
             tm["holefill_ms"] = 1e3 * (time.perf_counter() - t0)
             t0 = time.perf_counter()
         dense = fill_depth(depth[None, None], keep[None, None])[0, 0]
@@ -158,6 +162,46 @@ class Renderer:
         """Six 90-degree faces around ``position`` (world), each a ``size`` x ``size`` pinhole view."""
         cam = Camera(size, size, size / 2.0, size / 2.0, (size - 1) / 2.0, (size - 1) / 2.0)
         return self.render_batch(cubemap_poses(position), cam, stage)
+
+
+def grow_colours(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each empty pixel within ``radius`` (chessboard distance) of a point takes the mean colour of the
+    nearest ring of points around it, grown one pixel per step; returns the colours and the grown mask.
+
+    A scan seen close up or thinly scanned splats its points several pixels apart, in rows and columns
+    along the scanner's sweep: left to the U-Net, a surface between them comes out as a haze of the
+    surroundings dotted with the points' colours, which matches no camera image. Grown first, the
+    surface is solid and the network only fills what no point is near (benchmarks/RESULTS.md: SSIM
+    0.86 -> 0.89 on full scans, 0.74 -> 0.77 at 10 %).
+    """
+    if rgb01.device.type == "cpu":  # the same steps with OpenCV: ~10x faster than torch on one CPU thread
+        return _grow_cv2(rgb01, mask, radius)
+    return _grow_torch(rgb01, mask, radius)
+
+
+def _grow_torch(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    c, m = rgb01 * mask, mask
+    for _ in range(radius):
+        num = F.avg_pool2d(c, 3, 1, 1)  # zero padding, like the OpenCV path
+        den = F.avg_pool2d(m, 3, 1, 1)
+        new = (m == 0) & (den > 0)
+        c = torch.where(new, num / den.clamp_min(1e-6), c)
+        m = torch.where(new, torch.ones_like(m), m)
+    return c, m
+
+
+def _grow_cv2(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    c = np.ascontiguousarray((rgb01 * mask)[0].permute(1, 2, 0).numpy(), np.float32)
+    m = mask[0, 0].numpy().astype(np.float32, copy=True)  # not a view: the caller keeps its mask
+    for _ in range(radius):
+        den = cv2.boxFilter(m, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        new = (m == 0) & (den > 0)
+        if not new.any():
+            break
+        num = cv2.boxFilter(c, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        c[new] = num[new] / den[new][:, None]
+        m[new] = 1.0
+    return torch.from_numpy(c).permute(2, 0, 1)[None], torch.from_numpy(m)[None, None]
 
 
 def cubemap_poses(position) -> list[Pose]:
