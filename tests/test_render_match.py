@@ -121,6 +121,27 @@ def test_blurs_keyframes_with_the_given_exposure_and_stays_accurate(rm_setup):
     assert np.sqrt((np.array(errs)[:, 0] ** 2).mean()) < 0.05
 
 
+def test_weak_poses_are_not_reported_but_tracked_from(rm_setup):
+    """A pose that is plausible (inliers, reprojection error) but less certain than the gate gives no pose
+    for the frame, yet the next frame is tracked from it (no database here to fall back on)."""
+    from services.localize.render_match import RMConfig
+
+    renderer, ext, _, seq, _ = rm_setup
+    strict = RMConfig(max_sigma_deg=1e-6, track_sigma_factor=1e9)  # nothing is certain enough to report
+    tr = RenderMatchTracker(renderer, ext, db=None, cfg=strict)
+    for i in range(6):
+        f = seq.read(i)
+        r = tr.process(f.image, seq.camera, prior=seq.groundtruth.poses[0] if i == 0 else None, stamp=float(f.stamp))
+        assert r.status == Status.LOST and r.T_wc is None and r.inliers >= strict.min_inliers
+        dt, dr = seq.groundtruth.poses[i].distance_to(tr.T_last)  # still tracking
+        assert dt < 0.05 and dr < 1.0
+    loose = RMConfig(max_sigma_deg=1e-6, track_sigma_factor=1.0)  # weak poses are not tracked from either
+    tr = RenderMatchTracker(renderer, ext, db=None, cfg=loose)
+    f = seq.read(0)
+    assert tr.process(f.image, seq.camera, prior=seq.groundtruth.poses[0], stamp=float(f.stamp)).T_wc is None
+    assert tr.T_last is None
+
+
 def test_sparse_scan_renders_coarser_keyframes(rm_setup):
     from services.io.decimate import random_decimate
     from services.io.scans import load_scan

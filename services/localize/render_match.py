@@ -9,8 +9,10 @@ depth edge); PnP-RANSAC with non-linear refinement. Every measurement comes from
 Work is reused: one render and its features serve several live frames while the camera stays
 near the keyframe pose and matches stay plentiful; when the pose moves away (or matching
 weakens) the scan is re-rendered at the new pose and the frame is matched once more, which also
-refines its pose. Gates on inliers and reprojection error turn weak solutions into LOST, never a
-guess. With no pose (first frame, after LOST) the relocalization database gives a coarse pose,
+refines its pose. Gates on inliers, reprojection error and the pose's predicted uncertainty turn weak
+solutions into LOST, never a guess; a pose that is plausible (enough inliers, small error) but less
+certain than promised is not reported, yet tracking continues from it, so a few weak frames in a fast
+turn do not cost a relocalization. With no pose (first frame, after LOST) the relocalization database gives a coarse pose,
 which a render at that pose refines before tracking starts.
 
 Three things keep it accurate where a plain render-and-match is not:
@@ -20,15 +22,21 @@ Three things keep it accurate where a plain render-and-match is not:
   with that motion over the exposure time before extracting features. The exposure time comes
   from the caller (``exposure_s``), the config, or is calibrated on the first strongly moving
   frames (the exposure whose blurred render matches best; the median of a few such frames).
+  Blurred matches still err more than their scatter says (measured on the office walks: the pose
+  error is ~2x the predicted 1-sigma below 10 px of blur, 5-15x at 15-30 px), so the predicted
+  uncertainty is scaled by blur / 5 px (of a 640-wide frame, i.e. 3.75 px at the 480 px XFeat sees)
+  before the gate and on the wire.
 - **Keypoint bias between viewpoints.** XFeat places a keypoint by its network's 8-pixel cells, so
   the same corner seen from two poses a few pixels apart comes out shifted differently (measured:
   0.03 deg at a render from the very pose, 0.12-0.2 deg from any other, even with the simulator's
   perfect image and depth). Each match is therefore re-aligned by Lucas-Kanade: the render's patch
   around its keypoint is tracked into the live frame, starting at the matched live keypoint, and
   the pose is solved from where it lands (median 0.10 -> 0.05 deg over random offsets).
-- **Sparse scans.** Where a render is mostly holes (far or grazing surfaces, views through a
-  window) the keyframe is re-rendered at half resolution, where the same points cover the image,
-  and the live frame is matched at that resolution too.
+- **Sparse scans.** Keypoints between the points of a sparse render get their depth from a plane
+  fitted to the points around them (services/render/depth_sampling.py). Where most of a render is
+  too far from any point even for that (far or grazing surfaces, views through a window) the keyframe
+  is re-rendered at half resolution, where the same points cover the image, and the live frame is
+  matched at that resolution too.
 """
 
 from __future__ import annotations
@@ -76,10 +84,12 @@ class RMConfig:
     depth_radius: int = 4  # render pixels: a keypoint's depth is a plane fitted to the scan points this close ...
     depth_max_residual: float = 0.01  # ... all within this fraction of their depth of it (a depth edge is refused)
     exposure_s: float | None = None  # camera exposure time; None: per frame from the caller, else calibrated
-    blur_min_px: float = 6.0  # blur the keyframe render when the frame's predicted blur exceeds this (frame pixels)
+    blur_min_px: float = 8.0  # blur the keyframe render when the frame's predicted blur exceeds this (frame pixels)
     calib_min_px: float = 10.0  # frames moving at least this much per frame interval calibrate the exposure ...
     calib_frames: int = 8  # ... until this many have
     calib_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)  # exposure candidates, x frame interval
+    blur_sigma_px: float = 3.75  # a frame blurred more than this (pixels as XFeat sees them: 5 px of a 640-wide frame) has its uncertainty scaled by blur / this
+    track_sigma_factor: float = 3.0  # a pose up to this many times less certain than the gate is not reported but tracked from
     ransac_min_iterations: int = 100  # while tracking (relocalization keeps poselib's 1000)
     lk_window: int = 15  # patch (pixels at the render's resolution) re-aligning each match by Lucas-Kanade; 0 = off
     lk_max_px: float = 2.0  # a match whose patch lands further than this from its keypoint keeps the keypoint
@@ -285,6 +295,11 @@ class RenderMatchTracker:
             if r is not None:  # read by _good
                 r.px_factor = px_factor
                 r.px_deg = float(np.degrees(1.0 / max(fr.camera.fx, fr.camera.fy)))
+                # the blur as the matched features see it (live frame at kf.scale = base scale / px_factor)
+                blur = self._blur_px(fr, fr.exposure_s or self.exposure_s) * self._base_scale(fr.camera) / px_factor
+                inflate = blur / self.cfg.blur_sigma_px
+                if self.cfg.blur_sigma_px > 0 and inflate > 1 and r.cov is not None:
+                    r.cov = r.cov * inflate ** 2
         fr.tm["match_ms"] = fr.tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
         fr.tm["pose_ms"] = fr.tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
         return r
@@ -323,7 +338,7 @@ class RenderMatchTracker:
             best = results[int(np.argmax(inl))]
             if points[int(np.argmax(inl))][2] is not None:
                 best = self._solve(live, *points[int(np.argmax(inl))], fr, initial, px)
-            if self._good(best):
+            if self._plausible(best):  # blurred by definition: judged before the blur scaling of its uncertainty
                 self.calib_scores += inl / inl.max()
                 self.calib_intervals.append(fr.motion[1])
                 log.info("exposure calibration %d/%d: best %.1f ms on this frame, %.1f ms over all", len(self.calib_intervals),
@@ -338,7 +353,12 @@ class RenderMatchTracker:
             return self._blurred_points(kf, fr, exposure)
         return kf.feats, kf.xyz, kf.gray
 
-    def _good(self, r: PnpResult | None) -> bool:
+    def _plausible(self, r: PnpResult | None) -> bool:
+        """Enough inliers at a small reprojection error, uncertainty within ``track_sigma_factor`` x the
+        report gate: a pose to keep tracking from, reported only when also ``_good``."""
+        return self._good(r, self.cfg.track_sigma_factor)
+
+    def _good(self, r: PnpResult | None, factor: float = 1.0) -> bool:
         if r is not None and log.isEnabledFor(logging.DEBUG):
             log.debug("candidate: %d inliers, %.2f px, sigma %.1f cm %.2f deg", r.n_inliers, r.reproj_rmse_px,
                       100 * r.sigma_t_m, r.sigma_r_deg)
@@ -347,21 +367,24 @@ class RenderMatchTracker:
         coarse = max(1.0, getattr(r, "px_deg", 0.0) / self.cfg.sigma_ref_px_deg)  # a low-resolution camera cannot do better
         return (r.n_inliers >= self.cfg.min_inliers
                 and r.reproj_rmse_px <= self.cfg.max_rmse_px * getattr(r, "px_factor", 1.0)
-                and r.sigma_t_m <= self.cfg.max_sigma_m * coarse and r.sigma_r_deg <= self.cfg.max_sigma_deg * coarse)
+                and r.sigma_t_m <= self.cfg.max_sigma_m * coarse * factor and r.sigma_r_deg <= self.cfg.max_sigma_deg * coarse * factor)
 
     def _far(self, T: Pose, kf: Keyframe) -> bool:
         dt, dr = T.distance_to(kf.T_wc)
         return dt > self.cfg.rerender_m or dr > self.cfg.rerender_deg
 
-    def _render_and_refine(self, fr: _Frame, T: Pose, rounds: int = 1, kf: Keyframe | None = None) -> PnpResult | None:
+    def _render_and_refine(self, fr: _Frame, T: Pose, rounds: int = 1, kf: Keyframe | None = None,
+                           tracking: bool = False) -> PnpResult | None:
         """Render at ``T`` and match, up to ``rounds`` times while the pose still moves; keeps the last keyframe.
-        ``kf``: an existing render at ``T`` for the first round."""
+        ``kf``: an existing render at ``T`` for the first round. ``tracking``: a plausible pose is enough
+        (relocalizations must be good)."""
+        accept = self._plausible if tracking else self._good
         r = None
         for i in range(rounds):
             if i > 0 or kf is None:
                 kf = self._keyframe(T, fr)
             r = self._match(kf, fr, T, fresh=True)
-            if not self._good(r):
+            if not accept(r):
                 return None
             kf.ref_inliers = r.n_inliers
             self.kf = kf
@@ -401,12 +424,12 @@ class RenderMatchTracker:
                 T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
             kf = self.kf
             if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
-                r = self._render_and_refine(fr, T_pred)
+                r = self._render_and_refine(fr, T_pred, tracking=True)
                 rerendered = True
             else:
                 r = self._match(kf, fr, T_pred)
                 if not self._good(r) or self._far(r.T_wc, kf) or r.n_inliers < self.cfg.rerender_inlier_ratio * kf.ref_inliers:
-                    r = self._render_and_refine(fr, r.T_wc if self._good(r) else T_pred)
+                    r = self._render_and_refine(fr, r.T_wc if self._plausible(r) else T_pred, tracking=True)
                     rerendered = True
         if not self._good(r) and self.T_last is None and self.recent is not None:
             # re-acquire near the last good pose: a blurred or featureless frame or two should not cost a database query
@@ -424,7 +447,7 @@ class RenderMatchTracker:
                     rerendered = True
             else:
                 self.recent, self.recover_kf = None, None
-        if not self._good(r) and self.db is not None:
+        if not self._plausible(r) and self.db is not None:
             feats = self._live(fr, self._base_scale(camera))
             t0 = time.perf_counter()
             min_inl = max(15, self.cfg.min_inliers // 2)
@@ -442,7 +465,7 @@ class RenderMatchTracker:
                 self.relocalizations += 1
                 rerendered = True
         fr.tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
-        if not self._good(r):
+        if not self._plausible(r):
             if self.T_last is not None:
                 self.recent, self.lost_frames, self.recover_kf = (self.T_last, self.stamp_last), 0, None
             self._lose()
@@ -458,5 +481,7 @@ class RenderMatchTracker:
         else:
             self.motion = None
         self.T_last, self.stamp_last, self.recent, self.recover_kf = r.T_wc, stamp, None, None
-        return FrameResult(status, r.T_wc, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg,
-                           self._blur_px(fr, fr.exposure_s or self.exposure_s))
+        blur = self._blur_px(fr, fr.exposure_s or self.exposure_s)
+        if not self._good(r):  # weakly constrained: no pose reported, but tracking continues from it
+            return FrameResult(Status.LOST, None, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, blur)
+        return FrameResult(status, r.T_wc, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, blur)
