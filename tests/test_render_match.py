@@ -201,6 +201,12 @@ def test_relocalization_refuses_an_ambiguous_place(rm_setup):
     # the rival need not be among the views searched: one view searched, the twin found by the wider check
     assert twin.localize(feats, seq.camera, k=1, check=1, min_inliers=20)[0] is not None  # no check: a coin toss
     assert twin.localize(feats, seq.camera, k=1, min_inliers=20)[0] is None
+    # a camera seen here a moment ago cannot be 10 m away: searched within reach, the place is the right one
+    G = seq.groundtruth.poses[7]
+    near = (G.t, 4.0)
+    assert all(np.linalg.norm(twin.view_poses[v, :3] - G.t) <= 4.0 for v in twin.candidates(feats, 32, near))
+    r3, _ = twin.localize(feats, seq.camera, k=16, min_inliers=20, near=near)
+    assert r3 is not None and G.distance_to(r3.T_wc)[0] < 0.3
 
 
 def test_lucas_kanade_moves_matches_onto_the_true_correspondence(small_site):

@@ -77,6 +77,9 @@ class RMConfig:
     max_holes: float = 0.35  # a keyframe render with more pixels than this beyond depth_radius of any point is redone at half resolution ...
     coarse_levels: int = 2  # ... at most this many times (sparse scans, far surfaces, views through windows)
     reloc_candidates: int = 8
+    reloc_min_inliers: int = 30  # a database match needs this many (false poses from a wrong view reach 10-40 inliers)
+    max_speed_mps: float = 3.0  # a relocalization within anchor_s of the last reported pose searches only views this
+    anchor_s: float = 30.0  # ... fast a camera could have got to (+1 m): no jumping to an identical aisle 40 m away
     reloc_check: int = 32  # a relocalization is refused when views ranked up to this hold a rival place
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
@@ -183,6 +186,7 @@ class RenderMatchTracker:
         """Forget the track (the next frame relocalizes from the database)."""
         self._lose()
         self.recent: tuple[Pose, float | None] | None = None  # last good pose and its stamp, kept while LOST
+        self.anchor: tuple[Pose, float] | None = None  # last reported pose with a stamp: where the camera can be now
         self.recover_kf: Keyframe | None = None  # the render at ``recent``, reused while re-acquiring there
         self.lost_frames = 0
 
@@ -450,14 +454,17 @@ class RenderMatchTracker:
         if not self._plausible(r) and self.db is not None:
             feats = self._live(fr, self._base_scale(camera))
             t0 = time.perf_counter()
-            min_inl = max(15, self.cfg.min_inliers // 2)
-            coarse, _ = self.db.localize(feats, camera, k=self.cfg.reloc_candidates, min_inliers=min_inl, check=0)
+            min_inl = self.cfg.reloc_min_inliers
+            near = None
+            if self.anchor is not None and stamp is not None and 0 <= stamp - self.anchor[1] <= self.cfg.anchor_s:
+                near = (self.anchor[0].t, 1.0 + self.cfg.max_speed_mps * (stamp - self.anchor[1]))
+            coarse, _ = self.db.localize(feats, camera, k=self.cfg.reloc_candidates, min_inliers=min_inl, check=0, near=near)
             fr.tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
             fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
             r = self._render_and_refine(fr, coarse.T_wc, self.cfg.reloc_refine_rounds) if coarse is not None else None
             if self._good(r):  # about to be reported: is there another place it fits as well? (repetitive sites)
                 t0 = time.perf_counter()
-                if self.db.has_rival(feats, camera, coarse, self.cfg.reloc_candidates, self.cfg.reloc_check, min_inl):
+                if self.db.has_rival(feats, camera, coarse, self.cfg.reloc_candidates, self.cfg.reloc_check, min_inl, near=near):
                     r = None
                 fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
             if self._good(r):
@@ -481,6 +488,8 @@ class RenderMatchTracker:
         else:
             self.motion = None
         self.T_last, self.stamp_last, self.recent, self.recover_kf = r.T_wc, stamp, None, None
+        if stamp is not None and self._good(r):
+            self.anchor = (r.T_wc, stamp)
         blur = self._blur_px(fr, fr.exposure_s or self.exposure_s)
         if not self._good(r):  # weakly constrained: no pose reported, but tracking continues from it
             return FrameResult(Status.LOST, None, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, blur)

@@ -81,11 +81,17 @@ class RelocDB:
         return Pose.from_tum(self.view_poses[i])
 
     # ---- query -------------------------------------------------------------
-    def candidates(self, feats: Features, k: int = 8) -> np.ndarray:
-        """The ``k`` views whose global descriptor is most similar to the query's."""
+    def candidates(self, feats: Features, k: int = 8, near: tuple[np.ndarray, float] | None = None) -> np.ndarray:
+        """The ``k`` views whose global descriptor is most similar to the query's; with ``near`` =
+        (world position, radius m), only among the views rendered within that radius of it."""
         q = _vlad(feats.desc, self.vocab)
         sim = self.vlad @ q
-        return np.argsort(-sim)[:k]
+        order = np.argsort(-sim)
+        if near is not None:
+            centre, radius = near
+            inside = np.linalg.norm(self.view_poses[:, :3] - np.asarray(centre, float), axis=1) <= radius
+            order = order[inside[order]]
+        return order[:k]
 
     def _solve_views(self, feats: Features, camera: Camera, views, min_inliers: int,
                      max_error_px: float) -> list[tuple[PnpResult, int]]:
@@ -101,34 +107,39 @@ class RelocDB:
         return out
 
     def localize(self, feats: Features, camera: Camera, k: int = 8, min_inliers: int = 30,
-                 max_error_px: float = 3.0, ambiguity: float = 0.8, check: int = 32) -> tuple[PnpResult | None, int]:
+                 max_error_px: float = 3.0, ambiguity: float = 0.8, check: int = 32,
+                 near: tuple[np.ndarray, float] | None = None) -> tuple[PnpResult | None, int]:
         """Coarse pose of a query: match against the top-``k`` views, PnP-RANSAC; best by inliers. Returns (result, view).
 
         Repetitive sites (identical rack aisles, office floors) give several self-consistent poses at
         different places. When a pose more than 1 m or 20 degrees away from the best one has at least
         ``ambiguity`` times its inliers, the place is ambiguous and the answer is None, not a coin toss.
         Rivals are sought among the top-``check`` views, not only the ``k`` searched (``has_rival``).
+        ``near`` = (position, radius): search only views within reach of a recent pose (``candidates``).
         """
-        order = self.candidates(feats, k)
-        results = self._solve_views(feats, camera, order, min_inliers, max_error_px)
-        if not results:
-            return None, -1
+        order = self.candidates(feats, k, near)
+        # weaker solutions too: a rival only needs ``ambiguity`` x the best's inliers, which may be below min_inliers
+        results = self._solve_views(feats, camera, order, max(6, int(ambiguity * min_inliers)), max_error_px)
         results.sort(key=lambda rv: -rv[0].n_inliers)
+        if not results or results[0][0].n_inliers < min_inliers:
+            return None, -1
         best, best_view = results[0]
         if self._rival_in(best, best_view, results[1:], ambiguity) or (
-                check > k and self.has_rival(feats, camera, best, k, check, min_inliers, max_error_px, ambiguity)):
+                check > k and self.has_rival(feats, camera, best, k, check, min_inliers, max_error_px, ambiguity, near)):
             return None, -1
         return best, best_view
 
     def has_rival(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
-                  min_inliers: int = 30, max_error_px: float = 3.0, ambiguity: float = 0.8) -> bool:
+                  min_inliers: int = 30, max_error_px: float = 3.0, ambiguity: float = 0.8,
+                  near: tuple[np.ndarray, float] | None = None) -> bool:
         """Whether views ranked ``skip``..``check`` for this query hold another place that fits it about as
         well as ``best``. In the simulated warehouse the true aisle ranked outside the top 8 twice, and a
         wrong aisle 24-30 m away was accepted and then confirmed by its own render; the top 32 held a rival
         both times. Callers that refine the coarse pose first (Render & Match) ask only once it passed,
         so a LOST stretch does not pay for it on every frame."""
-        order = self.candidates(feats, check)[skip:]
-        return self._rival_in(best, -1, self._solve_views(feats, camera, order, min_inliers, max_error_px), ambiguity)
+        order = self.candidates(feats, check, near)[skip:]
+        floor = max(6, int(ambiguity * best.n_inliers))  # weaker solutions cannot be rivals
+        return self._rival_in(best, -1, self._solve_views(feats, camera, order, floor, max_error_px), ambiguity)
 
     @staticmethod
     def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float) -> bool:

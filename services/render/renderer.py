@@ -1,13 +1,15 @@
-"""The neural point renderer: splat -> hierarchical depth filter -> U-Net hole filling.
+"""The neural point renderer: splat -> hierarchical depth filter -> colour growing -> U-Net hole filling.
 
 ``Renderer(scan).render(T_wc, camera)`` returns what a camera at ``T_wc`` would see of the
 scan: a hole-filled RGB image, the background-filtered *measured* depth (0 where no point
 survived), a dense depth where holes are filled by push-pull, and the mask telling the two
-apart. Localization must back-project only ``measured`` pixels (or accept filled depth
-knowingly). The scan is prepared once (Morton-sorted chunks on the CPU, a 16-byte-per-point
+apart. Localization must take depth from ``measured`` pixels only (or accept filled depth
+knowingly; ``services.render.depth_sampling`` interpolates between measured points). Before the
+U-Net, points' colours grow a few pixels into the holes around them (``grow_colours``), so a
+surface splatted as rows of separate points comes out solid. The scan is prepared once (Morton-sorted chunks on the CPU, a 16-byte-per-point
 tensor on CUDA); renders never copy it.
 
-CPU path: numba splat + torch filter/U-Net. CUDA path: torch throughout. Both give the
+CPU path: numba splat + torch filter/U-Net (colour growing in OpenCV). CUDA path: torch throughout. Both give the
 same images (tests compare them).
 """
 
