@@ -25,6 +25,9 @@ class PnpResult:
     reproj_rmse_px: float  # over the inliers
     iterations: int
     cov: np.ndarray | None = None  # (6, 6) covariance of a right perturbation of T_wc: (translation m, rotation rad), camera axes
+    # set by a caller that gates on the result (Render & Match): the scale its features were matched at
+    px_factor: float = 1.0  # frame pixels per feature pixel, relative to the caller's base resolution
+    px_deg: float = 0.0  # the frame camera's angle per pixel (degrees)
 
     @property
     def n_inliers(self) -> int:

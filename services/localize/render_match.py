@@ -368,9 +368,9 @@ class RenderMatchTracker:
                       100 * r.sigma_t_m, r.sigma_r_deg)
         if r is None:
             return False
-        coarse = max(1.0, getattr(r, "px_deg", 0.0) / self.cfg.sigma_ref_px_deg)  # a low-resolution camera cannot do better
+        coarse = max(1.0, r.px_deg / self.cfg.sigma_ref_px_deg)  # a low-resolution camera cannot do better
         return (r.n_inliers >= self.cfg.min_inliers
-                and r.reproj_rmse_px <= self.cfg.max_rmse_px * getattr(r, "px_factor", 1.0)
+                and r.reproj_rmse_px <= self.cfg.max_rmse_px * r.px_factor
                 and r.sigma_t_m <= self.cfg.max_sigma_m * coarse * factor and r.sigma_r_deg <= self.cfg.max_sigma_deg * coarse * factor)
 
     def _far(self, T: Pose, kf: Keyframe) -> bool:
