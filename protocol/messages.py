@@ -34,7 +34,8 @@ rejected    the request was invalid (``error`` + ``reason`` say why); the client
 ========== ==============================================================================
 
 Quality: ``inliers``, ``rmse_px`` (inlier reprojection RMSE), ``sigma_m`` / ``sigma_deg`` (predicted
-1-sigma camera-centre and orientation uncertainty from the inlier geometry), ``timings`` (ms per
+1-sigma camera-centre and orientation uncertainty from the inlier geometry, scaled up with the frame's
+motion blur, under which matches err more than their scatter shows), ``timings`` (ms per
 server stage: ``decode_ms``, ``queue_ms``, ``features_ms``, ``render_ms``, ``match_ms``, ``pose_ms``,
 ``relocalize_ms``, ``total_ms``), ``server_id`` and ``map_id``.
 """
