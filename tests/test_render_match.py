@@ -284,3 +284,16 @@ def test_blurred_keyframe_features_are_reused_while_the_motion_is_alike(rm_setup
     tm3 = {}
     other = tr._blurred_points(kf, _Frame(f.image, seq.camera, tm3, (D.inverse(), 1 / 30), 1 / 30, None), 0.03)
     assert other[0] is not first[0] and tm3["blur_ms"] > 0  # the opposite turn is blurred anew
+
+
+def test_exposure_calibration_peak_between_candidates():
+    """The calibrated exposure is the vertex of the parabola through the best-scoring candidate and its
+    neighbours (the office walks score 0.3 and 0.4 of the frame interval almost alike for a true 0.36)."""
+    from services.localize.render_match import _parabolic_peak
+
+    x = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0])
+    y = 8.0 - 40.0 * (x - 0.36) ** 2
+    assert _parabolic_peak(x, y) == pytest.approx(0.36)
+    assert _parabolic_peak(x, -x) == 0.0 and _parabolic_peak(x, x) == 1.0  # a peak at either end stays there
+    flat = np.array([1.0, 1, 1, 2, 2, 2, 1, 1])  # not a strict peak: the best sample's neighbourhood
+    assert 0.2 <= _parabolic_peak(x, flat) <= 0.4

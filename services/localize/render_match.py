@@ -20,8 +20,10 @@ Three things keep it accurate where a plain render-and-match is not:
   2-3 px systematic shift, a third of the matches lost). With frame timestamps the tracker knows
   the camera's motion (constant velocity from the last two poses), so it blurs the keyframe render
   with that motion over the exposure time before extracting features. The exposure time comes
-  from the caller (``exposure_s``), the config, or is calibrated on the first strongly moving
-  frames (the exposure whose blurred render matches best; the median of a few such frames).
+  from the caller (``exposure_s``), the config, or is calibrated on the first frames that move at
+  least 20 px per frame interval (slower ones barely blur, so every candidate matches alike): each
+  candidate exposure's share of the inliers is summed over 8 such frames and the peak refined by a
+  parabola (office walks: 10.8-12.0 ms for the simulator's 12). Until then, 0.3 of the frame interval.
   Blurred matches still err more than their scatter says (measured on the office walks: the pose
   error is ~2x the predicted 1-sigma below 10 px of blur, 5-15x at 15-30 px), so the predicted
   uncertainty is scaled by blur / 5 px (of a 640-wide frame, i.e. 3.75 px at the 480 px XFeat sees)
@@ -88,7 +90,8 @@ class RMConfig:
     depth_max_residual: float = 0.01  # ... all within this fraction of their depth of it (a depth edge is refused)
     exposure_s: float | None = None  # camera exposure time; None: per frame from the caller, else calibrated
     blur_min_px: float = 8.0  # blur the keyframe render when the frame's predicted blur exceeds this (frame pixels)
-    calib_min_px: float = 10.0  # frames moving at least this much per frame interval calibrate the exposure ...
+    exposure_prior: float = 0.3  # exposure / frame interval assumed until calibrated (indoor video: ~10 ms at 30 fps)
+    calib_min_px: float = 20.0  # frames moving at least this much per frame interval calibrate the exposure ...
     calib_frames: int = 8  # ... until this many have
     calib_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)  # exposure candidates, x frame interval
     blur_sigma_px: float = 3.75  # a frame blurred more than this (pixels as XFeat sees them: 5 px of a 640-wide frame) has its uncertainty scaled by blur / this
@@ -122,6 +125,21 @@ class FrameResult:
     sigma_m: float = float("nan")  # predicted 1-sigma camera-centre uncertainty
     sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
     blur_px: float = 0.0  # predicted motion blur of the frame (pixels) the render was blurred with
+
+
+def _parabolic_peak(x: np.ndarray, y: np.ndarray) -> float:
+    """Where the parabola through the highest of the samples ``(x, y)`` and its two neighbours peaks
+    (clipped to them); the best sample itself at either end."""
+    i = int(np.argmax(y))
+    if i == 0 or i == len(x) - 1:
+        return float(x[i])
+    (x0, x1, x2), (y0, y1, y2) = x[i - 1:i + 2], y[i - 1:i + 2]
+    den = (x0 - x1) * (x0 - x2) * (x1 - x2)
+    a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
+    b = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
+    if a >= 0:
+        return float(x1)
+    return float(np.clip(-b / (2 * a), x0, x2))
 
 
 def normalised_gray(image: np.ndarray, size: tuple[int, int] | None = None) -> np.ndarray:
@@ -198,12 +216,23 @@ class RenderMatchTracker:
 
     @property
     def exposure_s(self) -> float | None:
-        """The exposure time in use: configured, else the calibrated median, else None (no blur yet)."""
+        """The exposure time in use: configured, else calibrated, else None (no blur yet).
+
+        Calibrated: the peak of the candidates' scores, refined by a parabola through the best candidate
+        and its neighbours, times the median frame interval."""
         if self.cfg.exposure_s is not None:
             return self.cfg.exposure_s
         if not self.calib_intervals:
             return None
-        return float(self.cfg.calib_fractions[int(np.argmax(self.calib_scores))] * np.median(self.calib_intervals))
+        return float(_parabolic_peak(np.asarray(self.cfg.calib_fractions), self.calib_scores) * np.median(self.calib_intervals))
+
+    def _exposure(self, fr: "_Frame") -> float | None:
+        """This frame's exposure time: from the caller, else configured or calibrated, else (before the
+        calibration has seen a fast frame) ``exposure_prior`` of the frame interval."""
+        e = fr.exposure_s or self.exposure_s
+        if e is None and fr.motion is not None:
+            e = self.cfg.exposure_prior * fr.motion[1]
+        return e
 
     # ---- pieces --------------------------------------------------------------
     def _base_scale(self, camera: Camera) -> float:
@@ -300,7 +329,7 @@ class RenderMatchTracker:
                 r.px_factor = px_factor
                 r.px_deg = float(np.degrees(1.0 / max(fr.camera.fx, fr.camera.fy)))
                 # the blur as the matched features see it (live frame at kf.scale = base scale / px_factor)
-                blur = self._blur_px(fr, fr.exposure_s or self.exposure_s) * self._base_scale(fr.camera) / px_factor
+                blur = self._blur_px(fr, self._exposure(fr)) * self._base_scale(fr.camera) / px_factor
                 inflate = blur / self.cfg.blur_sigma_px
                 if self.cfg.blur_sigma_px > 0 and inflate > 1 and r.cov is not None:
                     r.cov = r.cov * inflate ** 2
@@ -328,31 +357,28 @@ class RenderMatchTracker:
         """
         live = self._live(fr, kf.scale)
         px = self._base_scale(fr.camera) / kf.scale
-        exposure = fr.exposure_s or self.exposure_s
         calibrate = (fresh and fr.exposure_s is None and self.cfg.exposure_s is None and fr.motion is not None
                      and len(self.calib_intervals) < self.cfg.calib_frames
                      and self._blur_px(fr, fr.motion[1]) >= self.cfg.calib_min_px)
-        if calibrate:  # try every exposure candidate; the frame keeps the best pose, the scores accumulate
+        if calibrate:  # try every exposure candidate; the scores accumulate
             results, points = [], []
             for frac in self.cfg.calib_fractions:  # scored by the XFeat matches alone: patch alignment would blur the choice
                 e = frac * fr.motion[1]
                 points.append(self._blurred_points(kf, fr, e, reuse=False) if self._blur_px(fr, e) >= 1.0 else (kf.feats, kf.xyz, kf.gray))
                 results.append(self._solve(live, *points[-1][:2], None, fr, initial, px))
             inl = np.array([0 if r is None else r.n_inliers for r in results], float)
-            best = results[int(np.argmax(inl))]
-            if points[int(np.argmax(inl))][2] is not None:
-                best = self._solve(live, *points[int(np.argmax(inl))], fr, initial, px)
-            if self._plausible(best):  # blurred by definition: judged before the blur scaling of its uncertainty
+            if self._plausible(results[int(np.argmax(inl))]):
                 self.calib_scores += inl / inl.max()
                 self.calib_intervals.append(fr.motion[1])
                 log.info("exposure calibration %d/%d: best %.1f ms on this frame, %.1f ms over all", len(self.calib_intervals),
                          self.cfg.calib_frames, 1e3 * self.cfg.calib_fractions[int(np.argmax(inl))] * fr.motion[1], 1e3 * self.exposure_s)
-            return best
+            # the frame's pose as any other frame's, with the exposure calibrated so far: one frame's own best
+            # candidate is noisy, and these are the fastest, least forgiving frames
         return self._solve(live, *self._keyframe_points(kf, fr), fr, initial, px)
 
     def _keyframe_points(self, kf: Keyframe, fr: _Frame) -> tuple:
         """The keyframe's features, world points and grey image as this frame sees them (blurred when it moves fast)."""
-        exposure = fr.exposure_s or self.exposure_s
+        exposure = self._exposure(fr)
         if self._blur_px(fr, exposure) >= self.cfg.blur_min_px:
             return self._blurred_points(kf, fr, exposure)
         return kf.feats, kf.xyz, kf.gray
@@ -490,7 +516,7 @@ class RenderMatchTracker:
         self.T_last, self.stamp_last, self.recent, self.recover_kf = r.T_wc, stamp, None, None
         if stamp is not None and self._good(r):
             self.anchor = (r.T_wc, stamp)
-        blur = self._blur_px(fr, fr.exposure_s or self.exposure_s)
+        blur = self._blur_px(fr, self._exposure(fr))
         if not self._good(r):  # weakly constrained: no pose reported, but tracking continues from it
             return FrameResult(Status.LOST, None, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, blur)
         return FrameResult(status, r.T_wc, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, blur)
