@@ -297,3 +297,24 @@ def test_exposure_calibration_peak_between_candidates():
     assert _parabolic_peak(x, -x) == 0.0 and _parabolic_peak(x, x) == 1.0  # a peak at either end stays there
     flat = np.array([1.0, 1, 1, 2, 2, 2, 1, 1])  # not a strict peak: the best sample's neighbourhood
     assert 0.2 <= _parabolic_peak(x, flat) <= 0.4
+
+
+def test_blurred_frames_report_a_larger_uncertainty(rm_setup):
+    """The same frame, moving fast: its predicted 1-sigma is scaled by its blur (as XFeat sees it) / 3.75 px."""
+    from services.localize.render_match import RMConfig
+
+    renderer, ext, _, seq, _ = rm_setup
+    base = dict(exposure_s=0.06, blur_min_px=0.5, max_sigma_deg=1e3, max_sigma_m=1e3)  # frames 2/30 s apart
+    res = []
+    for cfg in (RMConfig(**base, blur_sigma_px=1e9), RMConfig(**base)):  # without, then with the scaling
+        tr = RenderMatchTracker(renderer, ext, db=None, cfg=cfg)
+        f0, f1 = seq.read(0), seq.read(2)
+        tr.process(f0.image, seq.camera, prior=seq.groundtruth.poses[0], stamp=float(f0.stamp))
+        D = seq.groundtruth.poses[0].inverse() @ seq.groundtruth.poses[2]
+        res.append(tr.process(f1.image, seq.camera, stamp=float(f1.stamp), motion=D))
+    plain, scaled = res
+    assert plain.T_wc is not None and scaled.T_wc is not None and plain.blur_px == scaled.blur_px
+    expected = max(1.0, plain.blur_px * tr._base_scale(seq.camera) / 3.75)  # the test camera: XFeat sees every pixel
+    assert expected > 1.5  # the motion is fast enough for the test to mean something
+    assert scaled.sigma_deg == pytest.approx(plain.sigma_deg * expected, rel=0.02)
+    assert scaled.sigma_m == pytest.approx(plain.sigma_m * expected, rel=0.02)
