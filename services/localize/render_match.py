@@ -205,7 +205,7 @@ class RenderMatchTracker:
         self._lose()
         self.recent: tuple[Pose, float | None] | None = None  # last good pose and its stamp, kept while LOST
         self.anchor: tuple[Pose, float] | None = None  # last reported pose with a stamp: where the camera can be now
-        self.recover_kf: Keyframe | None = None  # the render at ``recent``, reused while re-acquiring there
+        self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.lost_frames = 0
 
     def _lose(self) -> None:
@@ -468,7 +468,8 @@ class RenderMatchTracker:
             age = (stamp - s_rec) if (stamp is not None and s_rec is not None) else self.lost_frames / 30.0
             if age <= self.cfg.recover_s:
                 fr.motion, fr.relocalizing = None, True
-                if self.recover_kf is None or self.recover_kf.frame_camera != camera:  # one render serves the stretch
+                kf = self.recover_kf  # one render at the last good pose serves the whole stretch
+                if kf is None or kf.frame_camera != camera or kf.T_wc is not T_rec:
                     self.recover_kf = self._keyframe(T_rec, fr)
                 r = self._render_and_refine(fr, T_rec, self.cfg.reloc_refine_rounds, kf=self.recover_kf)
                 if self._good(r):
@@ -476,7 +477,7 @@ class RenderMatchTracker:
                     self.relocalizations += 1
                     rerendered = True
             else:
-                self.recent, self.recover_kf = None, None
+                self.recent = None
         if not self._plausible(r) and self.db is not None:
             feats = self._live(fr, self._base_scale(camera))
             t0 = time.perf_counter()
@@ -500,7 +501,7 @@ class RenderMatchTracker:
         fr.tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
         if not self._plausible(r):
             if self.T_last is not None:
-                self.recent, self.lost_frames, self.recover_kf = (self.T_last, self.stamp_last), 0, None
+                self.recent, self.lost_frames = (self.T_last, self.stamp_last), 0
             self._lose()
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
                                float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm)
@@ -513,7 +514,7 @@ class RenderMatchTracker:
             self.motion = (self.recent[0].inverse() @ r.T_wc, stamp - self.recent[1])
         else:
             self.motion = None
-        self.T_last, self.stamp_last, self.recent, self.recover_kf = r.T_wc, stamp, None, None
+        self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
         if stamp is not None and self._good(r):
             self.anchor = (r.T_wc, stamp)
         blur = self._blur_px(fr, self._exposure(fr))
