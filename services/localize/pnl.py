@@ -198,6 +198,7 @@ class _Frame:
     inv_sigma2: np.ndarray  # (N,) 1 / scale^(2 octave)
     image: np.ndarray | None = None  # the frame as given (for patch alignment)
     camera: Camera | None = None
+    coarse: float = 1.0  # the gates' scale for this camera: its pixel angle / sigma_ref_px_deg, at least 1
 
 
 class PnlLocalizer:
@@ -226,8 +227,6 @@ class PnlLocalizer:
         self._local_rows = np.zeros(0, np.int64)
         self._local_P = np.zeros((0, 3))
         self.relocalizations = 0
-        self._sigma = (float("inf"), float("inf"))
-        self._coarse = 1.0  # gate scale of the current frame's camera
         log.info("P&L localizer: %d keyframes, %d landmarks indexed in %.2f s", stella_map.n_keyframes,
                  stella_map.n_landmarks, time.perf_counter() - t0)
 
@@ -303,7 +302,8 @@ class PnlLocalizer:
         keep = rank < cap
         grid = -np.ones((gw * gh, cap), np.int64)
         grid[cs[keep], rank[keep]] = order[keep]
-        return _Frame(f, uv, K, camera.width, camera.height, grid, gw, gh, self._inv_s2[f.octaves], image, camera)
+        coarse = max(1.0, math.degrees(1.0 / max(camera.fx, camera.fy)) / self.cfg.sigma_ref_px_deg)
+        return _Frame(f, uv, K, camera.width, camera.height, grid, gw, gh, self._inv_s2[f.octaves], image, camera, coarse)
 
     # ---- local map -----------------------------------------------------------------------
     def _local(self, T_wc: Pose) -> np.ndarray:
@@ -453,7 +453,6 @@ class PnlLocalizer:
         # RMSE in level-0 pixels with each residual divided by its keypoint's pyramid scale (chi-square units)
         px2 = e2[inl]
         rmse = float(math.sqrt(px2.mean())) if len(px2) else float("inf")
-        self._sigma = self._covariance(fr, R, t, P[inl], w_oct[inl], rmse)
         return R, t, inl, rmse
 
     @staticmethod
@@ -502,14 +501,15 @@ class PnlLocalizer:
         if len(lm) < 10:
             return None
         R, t, inl, rmse = self._optimize(fr, R, t, lm, kp)
+        sigma = self._covariance(fr, R, t, self.idx.pos[lm[inl]], fr.inv_sigma2[kp[inl]], rmse) if inl.sum() >= 6 \
+            else (float("inf"), float("inf"))
         tm["pose_ms"] += 1e3 * (time.perf_counter() - t3)
-        r = (R, t, int(inl.sum()), rmse, *self._sigma)
-        if self.patches is not None and self.cfg.align and self._good(r):
+        r = (R, t, int(inl.sum()), rmse, *sigma)
+        if self.patches is not None and self.cfg.align and self._good(r, fr):
             # refine poses that are reported anyway; the gates keep judging the keypoint solution, so an
             # alignment (whose residuals are smaller) never turns a weak frame into a reported one
             t4 = time.perf_counter()
             R, t = self._aligned(fr, R, t, lm, kp, inl)
-            self._sigma = r[4:]  # the solve inside overwrote it
             tm["align_ms"] = 1e3 * (time.perf_counter() - t4)
             r = (R, t, *r[2:])
         return r
@@ -559,9 +559,9 @@ class PnlLocalizer:
         """Enough inliers with a small reprojection error: a pose to keep tracking from."""
         return r is not None and r[2] >= self.cfg.min_inliers and r[3] <= self.cfg.max_rmse_px
 
-    def _good(self, r) -> bool:
+    def _good(self, r, fr: _Frame) -> bool:
         """Plausible and well constrained: a pose to report."""
-        c = self._coarse
+        c = fr.coarse
         return self._plausible(r) and r[4] <= self.cfg.max_sigma_m * c and r[5] <= self.cfg.max_sigma_deg * c
 
     # ---- relocalization ------------------------------------------------------------------------
@@ -626,7 +626,6 @@ class PnlLocalizer:
         t_start = time.perf_counter()
         c_start = time.thread_time()
         fr = self._frame(image, camera)
-        self._coarse = max(1.0, math.degrees(1.0 / max(camera.fx, camera.fy)) / self.cfg.sigma_ref_px_deg)
         tm["features_ms"] = 1e3 * (time.perf_counter() - t_start)
         status = Status.TRACKING
         r = None
@@ -641,7 +640,7 @@ class PnlLocalizer:
                 r = self._track(fr, self.T_last, 2 * self.cfg.coarse_radius_px, tm)
         if not self._plausible(r):
             r = self._relocalize(fr, tm)
-            if self._good(r):
+            if self._good(r, fr):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1
         tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
@@ -652,7 +651,7 @@ class PnlLocalizer:
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm)
         R, t, n, rmse, sig_m, sig_deg = r
         T_wc = Pose(R.T, -R.T @ t)
-        if not self._good(r):  # weakly constrained: no pose reported, but tracking continues from it
+        if not self._good(r, fr):  # weakly constrained: no pose reported, but tracking continues from it
             self.T_last, self._vel = T_wc, None
             return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg)
         if self.T_last is not None and status == Status.TRACKING:
