@@ -57,7 +57,7 @@ from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.localize.status import Status
-from services.render.depth_sampling import plane_depth, support_fraction
+from services.render.depth_sampling import support_fraction
 
 __all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "normalised_gray", "refine_matches_lk"]
 
@@ -253,9 +253,7 @@ class RenderMatchTracker:
         each keypoint, none on a depth edge)."""
         t0 = time.perf_counter()
         f = self.extractor.extract(rgb)
-        uv = f.kpts.astype(np.float64)
-        z, ok = plane_depth(render.depth, uv, self.cfg.depth_radius, self.cfg.depth_max_residual)
-        X = render.T_wc.transform(render.camera.backproject(uv, z))
+        X, ok, _ = render.surface_points(f.kpts, self.cfg.depth_radius, self.cfg.depth_max_residual)
         tm["kf_features_ms"] = tm.get("kf_features_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         return f.subset(ok), X[ok]
 
@@ -330,9 +328,8 @@ class RenderMatchTracker:
                 r.px_deg = float(np.degrees(1.0 / max(fr.camera.fx, fr.camera.fy)))
                 # the blur as the matched features see it (live frame at kf.scale = base scale / px_factor)
                 blur = self._blur_px(fr, self._exposure(fr)) * self._base_scale(fr.camera) / px_factor
-                inflate = blur / self.cfg.blur_sigma_px
-                if self.cfg.blur_sigma_px > 0 and inflate > 1 and r.cov is not None:
-                    r.cov = r.cov * inflate ** 2
+                if self.cfg.blur_sigma_px > 0 and blur > self.cfg.blur_sigma_px and r.cov is not None:
+                    r.cov = r.cov * (blur / self.cfg.blur_sigma_px) ** 2
         fr.tm["match_ms"] = fr.tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
         fr.tm["pose_ms"] = fr.tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
         return r
@@ -515,9 +512,8 @@ class RenderMatchTracker:
         else:
             self.motion = None
         self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
-        if stamp is not None and self._good(r):
+        good = self._good(r)  # else weakly constrained: no pose reported, but tracking continues from it
+        if good and stamp is not None:
             self.anchor = (r.T_wc, stamp)
-        blur = self._blur_px(fr, self._exposure(fr))
-        if not self._good(r):  # weakly constrained: no pose reported, but tracking continues from it
-            return FrameResult(Status.LOST, None, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, blur)
-        return FrameResult(status, r.T_wc, r.n_inliers, r.reproj_rmse_px, rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, blur)
+        return FrameResult(status if good else Status.LOST, r.T_wc if good else None, r.n_inliers, r.reproj_rmse_px,
+                           rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, self._blur_px(fr, self._exposure(fr)))

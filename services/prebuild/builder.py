@@ -36,7 +36,7 @@ from services.geometry.se3 import Pose, look_at
 from services.log import progress
 from services.prebuild.patches import LandmarkPatches, map_fingerprint, sample_patches
 from services.prebuild.stella_map import DEFAULT_ORB_NAME, MapCamera, MapKeyframe, OrbParams, StellaMap
-from services.render.depth_sampling import plane_depth, plane_normals
+from services.render.depth_sampling import plane_normals
 
 __all__ = ["BuildConfig", "view_poses", "build_map"]
 
@@ -136,10 +136,10 @@ def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera
         f = ext.extract_stella(gray)  # descriptors exactly as stella_vslam computes them
         # depth from the scan points around each keypoint: also between the points of a sparse render
         uvc = level_centres(f.kpts, f.octaves, cfg.orb.scale_factor)
-        z, ok, planes = plane_depth(r.depth, uvc, cfg.depth_radius, cfg.depth_max_residual, return_plane=True)
+        X, ok, planes = r.surface_points(uvc, cfg.depth_radius, cfg.depth_max_residual)
         sel = np.flatnonzero(ok)
-        f, uvc, z = f.subset(sel), uvc[sel], z[sel]
-        X = T.transform(r.camera.backproject(uvc, z))
+        f, uvc, X = f.subset(sel), uvc[sel], X[sel]
+        z = T.inverse().transform(X)[:, 2]
         normals = None
         if cfg.patch_size:
             c = r.camera

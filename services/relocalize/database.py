@@ -29,7 +29,6 @@ from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write
 from services.log import progress
-from services.render.depth_sampling import plane_depth
 
 __all__ = ["RelocDB", "DBConfig", "build_database", "DB_FORMAT_VERSION"]
 
@@ -188,9 +187,7 @@ def build_database(renderer, positions: np.ndarray, extractor: XFeatExtractor, c
         for T in cubemap_poses(p)[:n_faces]:
             r = renderer.render(T, cam)
             f = extractor.extract(r.rgb, top_k=cfg.top_k)
-            uv = f.kpts.astype(np.float64)
-            z, ok = plane_depth(r.depth, uv, cfg.depth_radius, cfg.depth_max_residual)
-            X = T.transform(cam.backproject(uv, z))
+            X, ok, _ = r.surface_points(f.kpts, cfg.depth_radius, cfg.depth_max_residual)
             poses.append(T.to_tum())
             xyzs.append(X[ok])
             descs.append(f.desc[ok])

@@ -29,6 +29,7 @@ from services.geometry.se3 import Pose
 from services.io.scan import Scan
 from services.render.cloud import prepare_cloud
 from services.render.depth_filter import FilterConfig, fill_depth, hierarchical_depth_filter
+from services.render.depth_sampling import plane_depth
 from services.render.splat import SplatConfig, splat
 from services.render.unet import load_holefill
 
@@ -68,6 +69,15 @@ class Render:
         ok = d > 0
         Xc = self.camera.backproject(uv, d)
         return self.T_wc.transform(Xc), ok
+
+    def surface_points(self, uv: np.ndarray, radius: int = 4, max_residual: float = 0.01
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World points (N,3) of sub-pixel ``uv`` (N,2) on the surface of the measured points around them, a
+        validity mask, and the fitted planes (``services.render.depth_sampling.plane_depth``): unlike
+        ``backproject``, a keypoint between the points of a sparse render gets a depth, one on a depth edge none."""
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        z, ok, planes = plane_depth(self.depth, uv, radius, max_residual, return_plane=True)
+        return self.T_wc.transform(self.camera.backproject(uv, z)), ok, planes
 
 
 def _device(device: str | None) -> torch.device:
