@@ -103,8 +103,8 @@ def _normalise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
-                     K: np.ndarray, gray: np.ndarray, half: int = 6, iterations: int = 6, max_px: float = 2.5,
-                     min_zncc: float = 0.75) -> tuple[np.ndarray, np.ndarray]:
+                     K: np.ndarray, gray: np.ndarray, half: int = 6, iterations: int = 8, max_px: float = 6.0,
+                     min_zncc: float = 0.75) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where landmarks ``P_w`` (M, 3) with patches ``idx`` (M,) appear in the live frame.
 
     The live camera is (``R_cw``, ``t_cw``, pinhole ``K``); ``gray`` is the undistorted live frame (float32).
@@ -112,72 +112,88 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
     (2 half + 1)^2 pixel window around its projection is mapped through the landmark's tangent plane
     into its source keyframe and sampled from the stored patch (the template, as the live camera would
     see it); the live window is then shifted by Gauss-Newton until it matches. Returns the refined
-    pixels (M, 2) and a mask of those that converged within ``max_px`` of the projection, on a patch
-    that is not an edge, with a zero-mean normalised correlation of at least ``min_zncc``.
+    pixels (M, 2), a mask of those that converged within ``max_px`` of the projection, on a patch
+    that is not an edge, with a zero-mean normalised correlation of at least ``min_zncc``, and each
+    measurement's shape of information (M, 2, 2): the patch's gradient structure scaled to trace 2, so a
+    corner weighs like an isotropic 1 px measurement and a near-edge mostly across the edge (along it the
+    alignment barely moves from where it started, and a pose solve must not be held there).
+
+    ``max_px`` must leave room for the error of the pose given: the windows converge from 4 px and more,
+    and a bound close to the pose's error keeps the windows that did not move, which pulls a pose solved
+    from them back to the pose given.
     """
     M = len(idx)
     if M == 0:
-        return np.zeros((0, 2)), np.zeros(0, bool)
+        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 2, 2))
     k = 2 * half + 1
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     Xc = P_w @ R_cw.T + t_cw
     z = np.maximum(Xc[:, 2], 1e-6)
     u0 = np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy])
-    o = np.arange(k, dtype=np.float64) - half
-    gx = np.broadcast_to(u0[:, 0, None, None] + o[None, None, :], (M, k, k))  # window pixels, rows = y
-    gy = np.broadcast_to(u0[:, 1, None, None] + o[None, :, None], (M, k, k))
-    rx, ry = (gx - cx) / fx, (gy - cy) / fy  # their rays (z = 1) in the live camera
-    n_c = lp.normals[idx] @ R_cw.T  # landmark normals in the live camera
-    den = rx * n_c[:, 0, None, None] + ry * n_c[:, 1, None, None] + n_c[:, 2, None, None]
-    lam = np.einsum("mj,mj->m", n_c, Xc)[:, None, None] / _safe(den)  # ray depth at the tangent plane n.X = n.P
-    # live camera -> source camera: X_s = A X_c + b with A = R_s R^T, b = t_s - A t
+    # each window pixel's ray meets the landmark's tangent plane n.X = n.P; seen from the source keyframe
+    # (X_s = A X + b, A = R_s R^T, b = t_s - A t) the plane maps live pixels to source pixels by the homography
+    # H = K_s (dpl A + b n^T) K^-1, dpl = n.P (live camera coordinates)
+    n_c = lp.normals[idx] @ R_cw.T
+    dpl = np.einsum("mj,mj->m", n_c, Xc)
     S = lp.src_T_cw[lp.src[idx]]
     A = S[:, :, :3] @ R_cw.T
     b = S[:, :, 3] - np.einsum("mij,j->mi", A, t_cw)
-    Xs = [lam * (A[:, i, 0, None, None] * rx + A[:, i, 1, None, None] * ry + A[:, i, 2, None, None]) + b[:, i, None, None]
-          for i in range(3)]
-    zs = np.maximum(Xs[2], 1e-6)
-    Ks = lp.K
-    us, vs = Ks[0, 0] * Xs[0] / zs + Ks[0, 2], Ks[1, 1] * Xs[1] / zs + Ks[1, 2]
-    Pc = np.einsum("mij,mj->mi", S[:, :, :3], P_w) + S[:, :, 3]  # the stored patch is centred on P's projection
-    hs = (lp.size - 1) / 2.0
-    px = np.clip(us - (Ks[0, 0] * Pc[:, 0] / Pc[:, 2] + Ks[0, 2])[:, None, None] + hs, 0, lp.size - 1)
-    py = np.clip(vs - (Ks[1, 1] * Pc[:, 1] / Pc[:, 2] + Ks[1, 2])[:, None, None] + hs, 0, lp.size - 1)
-    py = py + (np.arange(M) * lp.size)[:, None, None]
+    Kinv = np.array([[1 / fx, 0, -cx / fx], [0, 1 / fy, -cy / fy], [0, 0, 1.0]])
+    H = lp.K @ (dpl[:, None, None] * A + b[:, :, None] * n_c[:, None, :]) @ Kinv  # (M, 3, 3)
+    H = (H / np.where(np.abs(H[:, 2:3, 2:3]) > 1e-12, H[:, 2:3, 2:3], 1e-12)).astype(np.float32)
+    o = np.arange(k, dtype=np.float32) - half
+    gx = (u0[:, 0, None].astype(np.float32) + o)[:, None, :]  # (M, 1, k): columns
+    gy = (u0[:, 1, None].astype(np.float32) + o)[:, :, None]  # (M, k, 1): rows
+
+    def row(i):
+        return H[:, i, 0, None, None] * gx + (H[:, i, 1, None, None] * gy + H[:, i, 2, None, None])
+
+    wz = row(2)
+    wz = np.where(np.abs(wz) > 1e-6, wz, 1e-6)
+    us, vs = row(0) / wz, row(1) / wz
+    hs = (lp.size - 1) / 2.0  # the stored patch is centred on P's projection, which is where u0 maps
+    px = np.clip(us - us[:, half: half + 1, half: half + 1] + hs, 0, lp.size - 1)
+    py = np.clip(vs - vs[:, half: half + 1, half: half + 1] + hs, 0, lp.size - 1)
+    py = py + (np.arange(M, dtype=np.float32) * lp.size)[:, None, None]
     stack = lp.patches[idx].reshape(M * lp.size, lp.size).astype(np.float32)
     tmpl = cv2.remap(stack, px.reshape(M * k, k).astype(np.float32), py.reshape(M * k, k).astype(np.float32),
                      cv2.INTER_LINEAR).reshape(M, k * k)
     T, _ = _normalise(tmpl)
-    d = np.zeros((M, 2))
+    d = np.zeros((M, 2), np.float32)
     ok = np.ones(M, bool)
     # the live window is sampled one pixel wider on every side: central differences give the gradients
     oe = np.arange(k + 2, dtype=np.float32) - (half + 1)
-    ex = (u0[:, 0, None, None] + oe[None, None, :]).astype(np.float32)
-    ey = (u0[:, 1, None, None] + oe[None, :, None]).astype(np.float32)
-    ex, ey = np.broadcast_to(ex, (M, k + 2, k + 2)), np.broadcast_to(ey, (M, k + 2, k + 2))
+    u0f = u0.astype(np.float32)
     r = np.zeros_like(T)
+    a, bb, c = np.zeros(M, np.float32), np.zeros(M, np.float32), np.zeros(M, np.float32)
+    act = np.arange(M)  # windows still moving
     for _ in range(iterations):
-        mx = (ex + d[:, 0, None, None].astype(np.float32)).reshape(M * (k + 2), k + 2)
-        my = (ey + d[:, 1, None, None].astype(np.float32)).reshape(M * (k + 2), k + 2)
-        w = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(M, k + 2, k + 2)
-        In, s = _normalise(w[:, 1:-1, 1:-1].reshape(M, k * k))
-        Ix = (0.5 * (w[:, 1:-1, 2:] - w[:, 1:-1, :-2])).reshape(M, k * k) / s[:, None]
-        Iy = (0.5 * (w[:, 2:, 1:-1] - w[:, :-2, 1:-1])).reshape(M, k * k) / s[:, None]
-        r = In - T
-        a, bb, c = (Ix * Ix).sum(1), (Ix * Iy).sum(1), (Iy * Iy).sum(1)
-        ga, gb = (Ix * r).sum(1), (Iy * r).sum(1)
-        det = a * c - bb * bb
-        well = det > 1e-3 * (a + c) ** 2  # not an edge: along an edge the shift is free
-        ok &= well
-        det = np.where(well, det, 1.0)
-        step = -np.column_stack([(c * ga - bb * gb) / det, (a * gb - bb * ga) / det])
-        d += np.where(ok[:, None], step, 0.0)
-        if np.abs(step[ok]).max(initial=0.0) < 0.02:
+        n = len(act)
+        if n == 0:
             break
+        cx_ = u0f[act, 0] + d[act, 0]
+        cy_ = u0f[act, 1] + d[act, 1]
+        mx = np.broadcast_to(cx_[:, None, None] + oe[None, None, :], (n, k + 2, k + 2)).reshape(n * (k + 2), k + 2)
+        my = np.broadcast_to(cy_[:, None, None] + oe[None, :, None], (n, k + 2, k + 2)).reshape(n * (k + 2), k + 2)
+        w = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(n, k + 2, k + 2)
+        In, sd = _normalise(w[:, 1:-1, 1:-1].reshape(n, k * k))
+        Ix = (0.5 * (w[:, 1:-1, 2:] - w[:, 1:-1, :-2])).reshape(n, k * k) / sd[:, None]
+        Iy = (0.5 * (w[:, 2:, 1:-1] - w[:, :-2, 1:-1])).reshape(n, k * k) / sd[:, None]
+        ra = In - T[act]
+        r[act] = ra
+        aa, bbb, cc = (Ix * Ix).sum(1), (Ix * Iy).sum(1), (Iy * Iy).sum(1)
+        a[act], bb[act], c[act] = aa, bbb, cc
+        ga, gb = (Ix * ra).sum(1), (Iy * ra).sum(1)
+        det = aa * cc - bbb * bbb
+        well = det > 1e-3 * (aa + cc) ** 2  # not an edge: along an edge the shift is free
+        ok[act] &= well
+        det = np.where(well, det, 1.0)
+        step = -np.column_stack([(cc * ga - bbb * gb) / det, (aa * gb - bbb * ga) / det])
+        keep = well & (np.abs(step).max(axis=1) >= 0.01)
+        d[act] += np.where(well[:, None], step, 0.0)
+        act = act[keep]
     zncc = 1.0 - 0.5 * (r * r).mean(1)  # both unit variance: mean squared difference = 2 (1 - zncc)
     ok &= (np.linalg.norm(d, axis=1) <= max_px) & (zncc >= min_zncc)
-    return u0 + d, ok
-
-
-def _safe(x: np.ndarray) -> np.ndarray:
-    return np.where(np.abs(x) < 1e-9, np.where(x < 0, -1e-9, 1e-9), x)
+    tr = np.maximum(a + c, 1e-9)
+    info = (2.0 / tr)[:, None, None] * np.stack([np.stack([a, bb], 1), np.stack([bb, c], 1)], 1)
+    return u0 + d, ok, info
