@@ -7,7 +7,9 @@ plain point splats, the paper's ablation) and the fraction of the scan's points 
 decimation). Maps are built with ``cristal -j 1 prebuild`` into SITE/pnl-maps/<variant>/ (reused when
 present; --rebuild to redo), then the light localizer runs over SITE/seq_00 with every thread pinned
 to one (OpenCV, OpenMP): the first frame relocalizes with no prior. APE is against groundtruth.txt,
-with no alignment. "track ms" = median CPU time (``time.thread_time``, so other processes on a shared
+with no alignment. "tracking": direct (the default: patch alignment from the prediction, keypoints when it
+fails), keypoints+align (ORB, then patch alignment) and keypoints (ORB only, as for a map without patches).
+"track ms" = median CPU time (``time.thread_time``, so other processes on a shared
 machine do not count) of a frame that tracked; "track FPS" = 1000 / its mean; "FPS all" = all frames
 (relocalizations included) over their total CPU time. "cold reloc": 40 random frames, each given to a fresh
 localizer with no pose; counted when RELOCALIZED within 5 cm / 1 degree of the ground truth.
@@ -48,7 +50,14 @@ def build(site: Path, stage: str, fraction: float, spacing: float, rebuild: bool
     return out, summary
 
 
-def localize(map_dir: Path, seq_dir: Path, align: bool = True) -> dict:
+MODES = {  # tracking modes (see services/localize/pnl.py): the default, then the paths it falls back to
+    "direct": {},
+    "keypoints+align": {"direct_landmarks": 0},
+    "keypoints": {"align": False},
+}
+
+
+def localize(map_dir: Path, seq_dir: Path, mode: str = "direct") -> dict:
     from services.eval.ape import compute_ape
     from services.io.sequence import open_sequence
     from services.io.trajectory import Trajectory
@@ -57,7 +66,7 @@ def localize(map_dir: Path, seq_dir: Path, align: bool = True) -> dict:
 
     seq = open_sequence(seq_dir)
     t0 = time.perf_counter()
-    loc = PnlLocalizer.load(map_dir, PnlConfig(align=align))
+    loc = PnlLocalizer.load(map_dir, PnlConfig(**MODES[mode]))
     load_s = time.perf_counter() - t0
     traj = Trajectory()
     track_ms, all_ms, counts = [], [], {s: 0 for s in Status}
@@ -108,7 +117,7 @@ def main() -> None:
     site = Path(args.site)
     if not (site / "site.json").exists():
         sys.exit(f"{site}: no simulated site (cristal sim --preset office --seed 1 --out {site})")
-    print("| site | map from | points | keyframes | landmarks | map MB (+ patches) | build s | patch alignment | localized | 1st frame "
+    print("| site | map from | points | keyframes | landmarks | map MB (+ patches) | build s | tracking | localized | 1st frame "
           "| APE RMSE cm / deg (none) | APE median cm / deg | track CPU ms (median) | track FPS | FPS all | cold reloc |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for v in args.variants:
@@ -116,10 +125,10 @@ def main() -> None:
         out, b = build(site, stage, float(frac), args.spacing, args.rebuild)
         patches = out / "patches.npz"
         extra = f" (+ {patches.stat().st_size / 1e6:.1f})" if patches.exists() else ""
-        for align in ([True, False] if patches.exists() else [False]):
-            r = localize(out, site / "seq_00", align)
+        for mode in (list(MODES) if patches.exists() else ["keypoints"]):
+            r = localize(out, site / "seq_00", mode)
             print(f"| {site.name} | {stage} | {b['points'] / 1e6:.2f} M ({float(frac):.0%}) | {b['keyframes']} | {b['landmarks']:,} "
-                  f"| {b['bytes'] / 1e6:.1f}{extra} | {b['total_s']:.0f} | {'on' if align else 'off'} "
+                  f"| {b['bytes'] / 1e6:.1f}{extra} | {b['total_s']:.0f} | {mode} "
                   f"| {r['localized']}/{r['frames']} = {r['localized'] / r['frames']:.1%} | {r['first']} "
                   f"| {r['ape_cm']:.2f} / {r['ape_deg']:.3f} | {r['ape_median_cm']:.2f} / {r['ape_median_deg']:.3f} "
                   f"| {r['track_ms_median']:.1f} | {r['track_fps']:.0f} | {r['fps']:.0f} | {r['cold']} |", flush=True)

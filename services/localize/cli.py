@@ -62,7 +62,8 @@ def register(sub) -> None:
                    help="(--method rm) report a pose only if its predicted 1-sigma orientation error is below this "
                         "(default 0.1; scaled up for cameras coarser than VGA); larger: more frames, less accurate")
     p.add_argument("--no-align", action="store_true",
-                   help="(--method pnl) skip the landmark-patch alignment: ~4 ms less per frame, about 2x the median error")
+                   help="(--method pnl) skip the landmark-patch alignment and direct tracking: keypoints only, as for a map "
+                        "without patches (office: 2.3 cm / 0.34 deg at 18 ms a frame, against 0.6 cm / 0.06 deg at 9 ms)")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="(--method rm) the same for the camera centre, in centimetres (default 1)")
     p.set_defaults(func=run_localize)

@@ -8,27 +8,36 @@ Public API (used by the Zenoh client's local fallback)::
     res = loc.process(image, camera, prior=None)   # res.status, res.T_wc, res.inliers, res.rmse_px, res.timings
     loc.reset(); loc.seed(T_wc)
 
-Per frame: stella_vslam-style ORB on the frame; keypoints undistorted with the frame's own
-intrinsics. With a pose to start from (the previous pose moved by the constant-velocity model, a
-client prior, or a seed), the landmarks of nearby keyframes that the predicted camera can see
-(distance inside the landmark's scale range, viewing angle within 60 degrees of its mean) are
-projected; each looks for the best keypoint within a small window at a compatible pyramid level
-(Hamming distance, ratio test, orientation histogram), and a motion-only Gauss-Newton with Huber
-weights and chi-square outlier rounds optimises the pose. Done twice: a wide window from the
-prediction, then a narrow one from the first estimate. The pose passes a gate (inliers, inlier
-reprojection RMSE) or the frame is LOST and gives no pose.
+Per frame, with a pose to start from (the previous pose moved by the constant-velocity model, a client
+prior, or a seed), the landmarks of nearby keyframes that the predicted camera can see (distance inside
+the landmark's scale range, viewing angle within 60 degrees of its mean) are the local map.
 
-When the map folder has landmark patches (``patches.npz``, written by ``cristal prebuild`` beside
-``map.msg``), the pose is measured again without ORB's corners, which shift with the viewpoint (1.5-2 px
-from where the landmarks project at the true pose, even on a noise-free image): the live frame is aligned
-to each landmark's patch warped into the live view (:mod:`services.prebuild.patches`, 0.2-0.3 px at the
-true pose), for the keypoint inliers and for visible landmarks that no keypoint matched (the most
-corner-like patches, spread over the image: alignment needs no keypoint). Each alignment weighs by its
-patch's gradient structure (an edge-like patch constrains only across its edge) and alignment and pose
-solve alternate until the pose stops moving. The reported pose and its predicted uncertainty (the gate)
-come from this solution; one that did not converge is at least as uncertain as its last step. On the
-office walk: 0.5 cm / 0.07 deg RMSE over 78 % of the frames, against 1.7 cm / 0.23 deg over 66 % from the
-keypoints (~9-15 ms per frame).
+Keypoint tracking: stella_vslam-style ORB on the frame, keypoints undistorted with the frame's own
+intrinsics; each projected landmark looks for the best keypoint within a small window at a compatible
+pyramid level (Hamming distance, ratio test, orientation histogram), and a motion-only Gauss-Newton with
+Huber weights and chi-square outlier rounds optimises the pose. Done twice: a wide window from the
+prediction, then a narrow one from the first estimate. The pose passes a gate (inliers, inlier
+reprojection RMSE, predicted uncertainty) or the frame is LOST and gives no pose.
+
+Patch alignment, when the map folder has landmark patches (``patches.npz``, written by ``cristal prebuild``
+beside ``map.msg``): ORB's corners shift with the viewpoint (1.5-2 px from where the landmarks project at
+the true pose, even on a noise-free image), so the pose is measured again by aligning the live frame to
+each landmark's patch warped into the live view (:mod:`services.prebuild.patches`, 0.2-0.3 px at the true
+pose). Each alignment weighs by its patch's gradient structure (an edge-like patch constrains only across
+its edge); alignment and pose solve alternate until the pose stops moving (one that does not converge is
+at least as uncertain as its last step). The reported pose and its uncertainty (the gate: 1 cm / 0.1 deg,
+as Render & Match) come from this solution.
+
+- Direct tracking (the default while tracking): the frame is aligned to ~120 visible landmarks with
+  corner-like patches, spread over the image, straight from the prediction; no ORB is extracted at all.
+  The windows converge from ~4 px, so this holds while the motion model predicts well; when its pose
+  is not good, the frame goes the keypoint way.
+- After keypoint tracking, the keypoint inliers and up to 60 landmarks no keypoint matched are aligned,
+  from keypoint solutions within 3x the gates (from further, the windows settle on self-consistent wrong
+  poses).
+
+Office walk, one core: 243/300 frames at 0.61 cm / 0.064 deg in ~11 ms per frame; keypoints alone gave
+1.7 cm / 0.23 deg over 197 frames in ~18 ms.
 
 With no pose (first frame, after LOST) the frame relocalizes against the map itself: each keypoint's
 descriptor is matched against every landmark's representative descriptor (ratio test), the
@@ -71,6 +80,8 @@ class PnlConfig:
     max_rmse_px: float = 1.5  # gate: inlier reprojection RMSE (pixels, each divided by its pyramid scale)
     max_sigma_m: float = 0.01  # gate: predicted 1-sigma camera-centre uncertainty of the reported solution ...
     max_sigma_deg: float = 0.1  # ... and orientation: a pose less certain than the accuracy we promise is LOST (as Render & Match)
+    kp_max_sigma_m: float = 0.02  # the same gates for a keypoint-only pose (a map without landmark patches, e.g. one
+    kp_max_sigma_deg: float = 0.3  # saved by stella_vslam): ORB corners cannot do better than ~1.5 cm / 0.2 deg here
     sigma_ref_px_deg: float = 0.12  # ... for cameras whose pixels subtend up to this (VGA); coarser ones scale both
     coarse_radius_px: float = 16.0  # window around the predicted projection (x scale^octave, capped by the grid)
     fine_radius_px: float = 4.0  # window after the first pose estimate
@@ -93,6 +104,7 @@ class PnlConfig:
     align_min_corner: float = 0.2  # those extra patches' corner score (0 edge or flat .. 0.5 isotropic corner)
     align_sigma_factor: float = 3.0  # align only from keypoint solutions within this many times the gates ...
     align_min_inlier_frac: float = 0.5  # ... and keep the aligned solution only when this share of the alignments agree
+    direct_landmarks: int = 120  # tracking first aligns this many visible landmarks from the prediction, no ORB; 0: off
     align_passes: int = 3  # alignment and pose solve alternate until the pose moves less than half its sigma, at most this often
     align_sigma_px: float = 0.5  # a corner patch's alignment noise (1 sigma, px; measured 0.2-0.3 px at the true pose)
     align_rmse_floor: float = 1.0  # the aligned solution's covariance assumes at least align_sigma_px of noise  # px: the aligned solution's covariance assumes at least this noise
@@ -199,18 +211,20 @@ class _MapIndex:
 
 @dataclass
 class _Frame:
-    feats: OrbFeatures
-    uv: np.ndarray  # (N, 2) undistorted pixels (float64)
     K: np.ndarray
     width: int
     height: int
-    grid: np.ndarray  # (n_cells, capacity) keypoint indices or -1
-    gw: int
-    gh: int
-    inv_sigma2: np.ndarray  # (N,) 1 / scale^(2 octave)
     image: np.ndarray | None = None  # the frame as given (for patch alignment)
     camera: Camera | None = None
     coarse: float = 1.0  # the gates' scale for this camera: its pixel angle / sigma_ref_px_deg, at least 1
+    # ORB, extracted only when the frame needs keypoints (see PnlLocalizer._features)
+    feats: OrbFeatures | None = None
+    uv: np.ndarray | None = None  # (N, 2) undistorted pixels (float64)
+    grid: np.ndarray | None = None  # (n_cells, capacity) keypoint indices or -1
+    gw: int = 0
+    gh: int = 0
+    inv_sigma2: np.ndarray | None = None  # (N,) 1 / scale^(2 octave)
+    gray: np.ndarray | None = None  # undistorted grey float32, for patch alignment (see PnlLocalizer._gray)
 
 
 def _corner_scores(lp: LandmarkPatches, half: int = 6) -> np.ndarray:
@@ -308,15 +322,23 @@ class PnlLocalizer:
     def _frame(self, image: np.ndarray, camera: Camera) -> _Frame:
         if image.shape[0] != camera.height or image.shape[1] != camera.width:
             raise ValueError(f"image is {image.shape[1]}x{image.shape[0]} but the camera says {camera.width}x{camera.height}")
-        f = self._extractor(camera.width).extract(image)
+        coarse = max(1.0, math.degrees(1.0 / max(camera.fx, camera.fy)) / self.cfg.sigma_ref_px_deg)
+        return _Frame(camera.K, camera.width, camera.height, image, camera, coarse)
+
+    def _features(self, fr: _Frame, tm: dict) -> _Frame:
+        """The frame's ORB keypoints (undistorted) and their search grid, extracted once."""
+        if fr.feats is not None:
+            return fr
+        t0 = time.perf_counter()
+        f = self._extractor(fr.width).extract(fr.image)
         pts = level_centres(f.kpts, f.octaves, self._orb.scale_factor)
-        K = camera.K
-        if camera.is_distorted and len(pts):
-            uv = cv2.undistortPoints(pts.reshape(-1, 1, 2), K, camera.dist, P=K).reshape(-1, 2)
+        cam = fr.camera
+        if cam.is_distorted and len(pts):
+            uv = cv2.undistortPoints(pts.reshape(-1, 1, 2), fr.K, cam.dist, P=fr.K).reshape(-1, 2)
         else:
             uv = pts
         c, cap = self.cfg.cell_px, self.cfg.cell_capacity
-        gw, gh = camera.width // c + 2, camera.height // c + 2
+        gw, gh = fr.width // c + 2, fr.height // c + 2
         # undistorted points may leave the image a little: shift by one cell
         cx = np.clip((uv[:, 0] // c).astype(np.int64) + 1, 0, gw - 1)
         cy = np.clip((uv[:, 1] // c).astype(np.int64) + 1, 0, gh - 1)
@@ -328,8 +350,9 @@ class PnlLocalizer:
         keep = rank < cap
         grid = -np.ones((gw * gh, cap), np.int64)
         grid[cs[keep], rank[keep]] = order[keep]
-        coarse = max(1.0, math.degrees(1.0 / max(camera.fx, camera.fy)) / self.cfg.sigma_ref_px_deg)
-        return _Frame(f, uv, K, camera.width, camera.height, grid, gw, gh, self._inv_s2[f.octaves], image, camera, coarse)
+        fr.feats, fr.uv, fr.grid, fr.gw, fr.gh, fr.inv_sigma2 = f, uv, grid, gw, gh, self._inv_s2[f.octaves]
+        tm["features_ms"] = 1e3 * (time.perf_counter() - t0)
+        return fr
 
     # ---- local map -----------------------------------------------------------------------
     def _local(self, T_wc: Pose) -> np.ndarray:
@@ -348,6 +371,27 @@ class PnlLocalizer:
         self._local_P = np.ascontiguousarray(idx.pos[rows])
         return rows
 
+    def _visible(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, margin: float = -8.0):
+        """The landmarks of ``rows`` the camera (R, t) sees: in front, projecting inside the image (``margin`` px in
+        from its border; negative: outside), inside their scale range and within 60 degrees of their mean viewing
+        direction. Returns those rows, their pixels (u, v) and distances."""
+        idx = self.idx
+        P = self._local_P if rows is self._local_rows else idx.pos[rows]
+        # in front and inside the image first (cheap, removes most), then scale range and viewing angle
+        z = P @ R[2] + t[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iz = np.where(z > 0.05, 1.0 / z, -1.0)
+            u = fr.K[0, 0] * (P @ R[0] + t[0]) * iz + fr.K[0, 2]
+            v = fr.K[1, 1] * (P @ R[1] + t[1]) * iz + fr.K[1, 2]
+        m = margin
+        sel = np.flatnonzero((iz > 0) & (u >= m) & (u < fr.width - m) & (v >= m) & (v < fr.height - m))
+        PO = P[sel] - (-R.T @ t)
+        rs = rows[sel]
+        dist = np.sqrt(np.einsum("ij,ij->i", PO, PO))
+        ok = (dist >= 0.7 * idx.min_dist[rs]) & (dist <= 1.3 * idx.max_dist[rs])
+        ok &= np.einsum("ij,ij->i", PO, idx.normal[rs]) >= 0.5 * dist
+        return rs[ok], u[sel][ok], v[sel][ok], dist[ok]
+
     # ---- projection matching ----------------------------------------------------------------
     def _match(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, radius: float,
                subsample: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -356,28 +400,11 @@ class PnlLocalizer:
         ``subsample``: search only every n-th visible landmark (the first, wide-window pass needs a pose, not every match).
         """
         idx, cfg = self.idx, self.cfg
-        P = self._local_P if rows is self._local_rows else idx.pos[rows]
-        # in front and inside the image first (cheap, removes most), then scale range and viewing angle
-        z = P @ R[2] + t[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            iz = np.where(z > 0.05, 1.0 / z, -1.0)
-            u = fr.K[0, 0] * (P @ R[0] + t[0]) * iz + fr.K[0, 2]
-            v = fr.K[1, 1] * (P @ R[1] + t[1]) * iz + fr.K[1, 2]
-        sel = np.flatnonzero((iz > 0) & (u >= -8) & (u < fr.width + 8) & (v >= -8) & (v < fr.height + 8))
-        rs = rows[sel]
-        PO = P[sel] - (-R.T @ t)
-        dist = np.sqrt(np.einsum("ij,ij->i", PO, PO))
-        ok = (dist >= 0.7 * idx.min_dist[rs]) & (dist <= 1.3 * idx.max_dist[rs])
-        ok &= np.einsum("ij,ij->i", PO, idx.normal[rs]) >= 0.5 * dist
-        u, v, dist = u[sel], v[sel], dist
-        sel = np.flatnonzero(ok)
-        rows = rs
-        if len(sel) == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), rows[sel]
-        visible = rows[sel]
-        if subsample > 1:
-            sel = sel[::subsample]
-        rows, u, v, dist = rows[sel], u[sel], v[sel], dist[sel]
+        visible, u, v, dist = self._visible(fr, R, t, rows)
+        if len(visible) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), visible
+        sel = np.arange(len(visible))[::subsample]
+        rows, u, v, dist = visible[sel], u[sel], v[sel], dist[sel]
         pred_oct = np.clip(np.ceil(np.log(np.maximum(idx.max_dist[rows] / dist, 1e-9)) / idx.log_sf), 0, idx.num_levels - 1).astype(np.int64)
         r = np.minimum(radius * idx.scale_factor ** pred_oct, cfg.cell_px)
         c = cfg.cell_px
@@ -530,6 +557,7 @@ class PnlLocalizer:
         return st, math.degrees(sr)
 
     def _track(self, fr: _Frame, T_wc_pred: Pose, coarse_radius: float, tm: dict) -> tuple[np.ndarray, np.ndarray, int, float] | None:
+        self._features(fr, tm)
         t0 = time.perf_counter()
         rows = self._local(T_wc_pred)
         T_cw = T_wc_pred.inverse()
@@ -553,18 +581,19 @@ class PnlLocalizer:
         sigma = self._covariance(fr, R, t, self.idx.pos[lm[inl]], fr.inv_sigma2[kp[inl]], rmse) if inl.sum() >= 6 \
             else (float("inf"), float("inf"))
         tm["pose_ms"] += 1e3 * (time.perf_counter() - t3)
-        r = (R, t, int(inl.sum()), rmse, *sigma)
-        if self.patches is not None and self.cfg.align and self._plausible(r) and self._good(r, fr, self.cfg.align_sigma_factor):
+        r = (R, t, int(inl.sum()), rmse, *sigma, False)
+        k = self.cfg.align_sigma_factor
+        if self.patches is not None and self.cfg.align and self._within(r, fr, k * self.cfg.max_sigma_m, k * self.cfg.max_sigma_deg):
             # the reported pose and its uncertainty come from the patch alignment; the keypoint solution's
             # inliers and RMSE still decide whether there is a pose to refine at all
             t4 = time.perf_counter()
             ra = self._aligned(fr, R, t, self._align_rows(fr, R, t, lm, kp, inl, visible))
             tm["align_ms"] = 1e3 * (time.perf_counter() - t4)
             if ra is not None:
-                r = (ra[0], ra[1], *r[2:4], *ra[4:])
+                r = (ra[0], ra[1], *r[2:4], *ra[4:])  # aligned: judged by the aligned gates
         return r
 
-    def _aligned(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray) -> tuple | None:
+    def _aligned(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, max_moved_px: float | None = 2.0) -> tuple | None:
         """The pose solved again from landmarks ``rows`` (with patches) measured by aligning the live frame to their
         patches (see :mod:`services.prebuild.patches`), as (R, t, inliers, whitened rmse, sigma_m, sigma_deg);
         None when that does not hold up.
@@ -577,7 +606,7 @@ class PnlLocalizer:
         if len(rows) < need:
             return None
         pidx = self._patch_of_row[rows]
-        gray = self._gray(fr).astype(np.float32)
+        gray = self._gray(fr)
         P = self.idx.pos[rows]
         X0 = P @ R.T + t
         R1, t1, out = R, t, None
@@ -589,57 +618,78 @@ class PnlLocalizer:
                 break
             R2, t2, inl2, rmse2 = self._optimize(fr, R1, t1, rows[ok], None, rounds=(4, 2), uv=q[ok], info=info[ok] * w)
             # each measurement moved by at most a few pixels from the keypoint pose's projection, so must the
-            # landmarks' projections: a solve that moves them further (a degenerate set) is not kept
+            # landmarks' projections: a solve that moves them further (a degenerate set) is not kept (``max_moved_px``;
+            # None from a prediction, whose error the windows themselves bound)
             X2 = P @ R2.T + t2
             moved = np.median(np.linalg.norm(fr.K[0, 0] * (X0[:, :2] / X0[:, 2:3] - X2[:, :2] / np.maximum(X2[:, 2:3], 1e-6)), axis=1))
-            if inl2.sum() < max(need, self.cfg.align_min_inlier_frac * ok.sum()) or not np.isfinite(rmse2) or not moved <= 2.0:
+            if (inl2.sum() < max(need, self.cfg.align_min_inlier_frac * ok.sum()) or not np.isfinite(rmse2)
+                    or (max_moved_px is not None and not moved <= max_moved_px)):
                 break
             dR = R2 @ R1.T
             step = (float(np.linalg.norm(R2.T @ t2 - R1.T @ t1)),
                     math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2)))))
             R1, t1 = R2, t2
             sig = self._covariance(fr, R2, t2, P[ok][inl2], info[ok][inl2] * w, rmse2, floor=self.cfg.align_rmse_floor)
-            out = (R2, t2, int(inl2.sum()), rmse2, *sig)
+            out = (R2, t2, int(inl2.sum()), rmse2, *sig, True)
             if step[0] <= 0.5 * sig[0] and step[1] <= 0.5 * sig[1]:  # converged: the alignment moved no more
                 return out
         if out is not None:  # not converged (a start too far for the windows): at least as uncertain as its last step
-            out = (*out[:4], max(out[4], step[0]), max(out[5], step[1]))
+            out = (*out[:4], max(out[4], step[0]), max(out[5], step[1]), True)
         return out
 
     def _align_rows(self, fr: _Frame, R: np.ndarray, t: np.ndarray, lm: np.ndarray, kp: np.ndarray, inl: np.ndarray,
                     visible: np.ndarray) -> np.ndarray:
         """The landmarks to align: the keypoint inliers with patches (finest octaves first, at most ``align_max``),
-        then up to ``align_extra`` more visible landmarks no keypoint matched, the most corner-like patches
-        spread over the image (alignment needs no keypoint, so it measures landmarks ORB did not find again)."""
+        then up to ``align_extra`` more visible landmarks no keypoint matched (alignment needs no keypoint, so it
+        measures landmarks ORB did not find again)."""
         pidx = self._patch_of_row[lm]
         sel = np.flatnonzero(inl & (pidx >= 0))
         sel = sel[np.argsort(fr.feats.octaves[kp[sel]], kind="stable")[: self.cfg.align_max]]
         rows = lm[sel]
-        n_extra = self.cfg.align_extra
-        if n_extra <= 0 or len(visible) == 0:
+        if self.cfg.align_extra <= 0 or len(visible) == 0:
             return rows
-        cand = visible[(self._patch_of_row[visible] >= 0) & ~np.isin(visible, lm[inl])]
-        cand = cand[self._corner[self._patch_of_row[cand]] >= self.cfg.align_min_corner]
-        if len(cand) == 0:
-            return rows
-        X = self.idx.pos[cand] @ R.T + t
+        return np.concatenate([rows, self._corners(fr, R, t, visible[~np.isin(visible, lm[inl])], self.cfg.align_extra)])
+
+    def _corners(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
+        """Up to ``n`` of the landmarks ``rows`` to align: those with corner-like patches projecting 12 px inside the
+        image, spread over it (the best patch of each 40 px cell first, then the second best of each, ...)."""
+        pidx = self._patch_of_row[rows]
+        rows = rows[pidx >= 0]
+        rows = rows[self._corner[self._patch_of_row[rows]] >= self.cfg.align_min_corner]
+        if len(rows) == 0 or n <= 0:
+            return rows[:0]
+        X = self.idx.pos[rows] @ R.T + t
         z = np.maximum(X[:, 2], 1e-6)
         u = fr.K[0, 0] * X[:, 0] / z + fr.K[0, 2]
         v = fr.K[1, 1] * X[:, 1] / z + fr.K[1, 2]
         m = 12
         inside = (X[:, 2] > 0.1) & (u >= m) & (u < fr.width - m) & (v >= m) & (v < fr.height - m)
-        cand, u, v = cand[inside], u[inside], v[inside]
-        # spread: the best patch of each 40 px cell first, then the second best of each, ...
+        rows, u, v = rows[inside], u[inside], v[inside]
         cell = (v // 40).astype(np.int64) * 1000 + (u // 40).astype(np.int64)
-        score = self._corner[self._patch_of_row[cand]]
+        score = self._corner[self._patch_of_row[rows]]
         o = np.lexsort((-score, cell))
         cs = cell[o]
         rank = np.arange(len(cs)) - np.searchsorted(cs, cs, side="left")
         o = o[np.argsort(rank, kind="stable")]
-        return np.concatenate([rows, cand[o[:n_extra]]])
+        return rows[o[:n]]
+
+    def _direct(self, fr: _Frame, T_wc_pred: Pose, tm: dict):
+        """Track without keypoints: align the frame to the patches of up to ``direct_landmarks`` visible landmarks
+        from the predicted pose and solve. Returns the aligned solution (as ``_aligned``) or None."""
+        t0 = time.perf_counter()
+        rows = self._local(T_wc_pred)
+        T_cw = T_wc_pred.inverse()
+        R, t = T_cw.R.copy(), T_cw.t.copy()
+        visible, _, _, _ = self._visible(fr, R, t, rows)
+        sel = self._corners(fr, R, t, visible, self.cfg.direct_landmarks)
+        r = self._aligned(fr, R, t, sel, max_moved_px=None)
+        tm["direct_ms"] = 1e3 * (time.perf_counter() - t0)
+        return r
 
     def _gray(self, fr: _Frame) -> np.ndarray:
-        """The frame in grey, undistorted like its keypoints."""
+        """The frame in grey (float32), undistorted like its keypoints; computed once per frame."""
+        if fr.gray is not None:
+            return fr.gray
         img = fr.image
         g = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         cam = fr.camera
@@ -649,19 +699,31 @@ class PnlLocalizer:
                 self._undistort = {key: cv2.initUndistortRectifyMap(cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1)}
             mx, my = self._undistort[key]
             g = cv2.remap(g, mx, my, cv2.INTER_LINEAR)
-        return g
+        fr.gray = g.astype(np.float32)
+        return fr.gray
 
     def _plausible(self, r) -> bool:
         """Enough inliers with a small reprojection error: a pose to keep tracking from."""
         return r is not None and r[2] >= self.cfg.min_inliers and r[3] <= self.cfg.max_rmse_px
 
-    def _good(self, r, fr: _Frame, factor: float = 1.0) -> bool:
-        """Plausible and well constrained (within ``factor`` x the gates): a pose to report."""
-        c = fr.coarse * factor
-        return self._plausible(r) and r[4] <= self.cfg.max_sigma_m * c and r[5] <= self.cfg.max_sigma_deg * c
+    def _good(self, r, fr: _Frame) -> bool:
+        """Plausible and well constrained: a pose to report. An aligned solution answers to the gates we promise
+        (``max_sigma_*``); a keypoint-only one only where alignment is off or impossible (a map without patches),
+        to the looser ``kp_max_sigma_*``."""
+        if r is not None and r[6]:
+            return self._within(r, fr, self.cfg.max_sigma_m, self.cfg.max_sigma_deg)
+        if self.patches is not None and self.cfg.align:  # alignment was possible but did not hold: only tracked from
+            return False
+        return self._within(r, fr, self.cfg.kp_max_sigma_m, self.cfg.kp_max_sigma_deg)
+
+    def _within(self, r, fr: _Frame, sigma_m: float, sigma_deg: float) -> bool:
+        """Plausible, with a predicted uncertainty within (``sigma_m``, ``sigma_deg``) x the camera's scale."""
+        c = fr.coarse
+        return self._plausible(r) and r[4] <= sigma_m * c and r[5] <= sigma_deg * c
 
     # ---- relocalization ------------------------------------------------------------------------
     def _relocalize(self, fr: _Frame, tm: dict):
+        self._features(fr, tm)
         t0 = time.perf_counter()
         idx, cfg = self.idx, self.cfg
         if len(fr.feats) < 10 or len(idx._reloc_rows) < 10:
@@ -722,17 +784,21 @@ class PnlLocalizer:
         t_start = time.perf_counter()
         c_start = time.thread_time()
         fr = self._frame(image, camera)
-        tm["features_ms"] = 1e3 * (time.perf_counter() - t_start)
         status = Status.TRACKING
         r = None
-        if prior is not None:
-            r = self._track(fr, prior, self.cfg.coarse_radius_px, tm)
-        elif self.T_last is not None:
+        pred = prior
+        if pred is None and self.T_last is not None:
             pred = self.T_last
             if self.cfg.use_velocity and self._vel is not None:
                 pred = self.T_last @ self._vel  # T_wc(t) = T_wc(t-1) @ (T_c(t-2)c(t-1))
-            r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
-            if not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
+        if pred is not None:
+            if self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0:
+                r = self._direct(fr, pred, tm)  # no ORB at all when the prediction is inside the windows' reach
+                if not (self._plausible(r) and self._good(r, fr)):
+                    r = None
+            if r is None:
+                r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
+            if prior is None and not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
                 r = self._track(fr, self.T_last, 2 * self.cfg.coarse_radius_px, tm)
         if not self._plausible(r):
             r = self._relocalize(fr, tm)
@@ -745,7 +811,7 @@ class PnlLocalizer:
             self.T_last = None
             self._vel = None
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm)
-        R, t, n, rmse, sig_m, sig_deg = r
+        R, t, n, rmse, sig_m, sig_deg, _ = r
         T_wc = Pose(R.T, -R.T @ t)
         if not self._good(r, fr):  # weakly constrained: no pose reported, but tracking continues from it
             if self.T_last is not None and status == Status.TRACKING:  # a fast pan keeps its prediction
