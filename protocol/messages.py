@@ -36,8 +36,9 @@ rejected    the request was invalid (``error`` + ``reason`` say why); the client
 Quality: ``inliers``, ``rmse_px`` (inlier reprojection RMSE), ``sigma_m`` / ``sigma_deg`` (predicted
 1-sigma camera-centre and orientation uncertainty from the inlier geometry, scaled up with the frame's
 motion blur, under which matches err more than their scatter shows), ``timings`` (ms per
-server stage: ``decode_ms``, ``queue_ms``, ``features_ms``, ``render_ms``, ``match_ms``, ``pose_ms``,
-``relocalize_ms``, ``total_ms``), ``server_id`` and ``map_id``.
+server stage that ran for the frame: ``decode_ms``, ``queue_ms``, ``direct_ms`` (tracked by patch alignment, no
+features on the frame), ``features_ms``, ``render_ms``, ``match_ms``, ``pose_ms``, ``relocalize_ms``,
+``total_ms``), ``server_id`` and ``map_id``.
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 
 import os
 
+import numpy as np
 import pytest
 
 os.environ.setdefault("CRISTAL_PROGRESS", "0")
@@ -38,3 +39,27 @@ def small_site_db(small_site, tmp_path_factory):
     path = tmp_path_factory.mktemp("db") / "reloc.npz"
     db.save(path)
     return path
+
+
+@pytest.fixture(scope="session")
+def site_480(small_site, tmp_path_factory):
+    """``small_site``'s first 8 ground-truth poses rendered at 480x360 (same field of view and distortion) under
+    camera-day lighting (not the scan's): frames large enough for ORB and for direct tracking.
+    Returns (site root, folder with ``seq``, camera, a box around the walk)."""
+    import cv2
+
+    from services.io.sequence import SequenceWriter, open_sequence
+    from services.sim.site import SimSite
+
+    root, cfg, _ = small_site
+    seq = open_sequence(root / "seq_00")
+    cam = seq.camera.scaled(2.4)  # 480x360, same field of view and distortion
+    out = tmp_path_factory.mktemp("pnl")
+    site = SimSite(root)
+    with SequenceWriter(out / "seq", cam) as w:
+        for stamp, T_wc in list(seq.groundtruth)[:8]:
+            rgb, _ = site.render(T_wc, cam, lighting="camera")
+            w.add(stamp, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), T_wc)
+    gt = np.array([T.t for _, T in seq.groundtruth])
+    box = [*(gt.min(0) - [1.5, 1.5, 0.3]), *(gt.max(0) + [1.5, 1.5, 0.3])]
+    return root, out, cam, box

@@ -1,8 +1,8 @@
 """Prebuild & Localize end to end on the small simulated site: build a map from the scan, check it, localize against it.
 
 The fixture's own frames are 200x150, too small for ORB (a 31-pixel patch, 8 pyramid levels); the
-sequence localized here is rendered from the same simulated site at the fixture's ground-truth
-poses with the same lens (distortion included) at 480x360, under camera-day lighting (not the
+sequence localized here (``site_480``, conftest) is rendered from the same simulated site at the fixture's
+ground-truth poses with the same lens (distortion included) at 480x360, under camera-day lighting (not the
 scan's), so the map (from the scan's points) and the frames come from different sources.
 """
 
@@ -16,24 +16,8 @@ from services.geometry.camera import Camera
 
 
 @pytest.fixture(scope="module")
-def pnl_site(small_site, tmp_path_factory):
-    import cv2
-
-    from services.io.sequence import SequenceWriter, open_sequence
-    from services.sim.site import SimSite
-
-    root, cfg, _ = small_site
-    seq = open_sequence(root / "seq_00")
-    cam = seq.camera.scaled(2.4)  # 480x360, same field of view and distortion
-    out = tmp_path_factory.mktemp("pnl")
-    site = SimSite(root)
-    with SequenceWriter(out / "seq", cam) as w:
-        for stamp, T_wc in list(seq.groundtruth)[:8]:
-            rgb, _ = site.render(T_wc, cam, lighting="camera")
-            w.add(stamp, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), T_wc)
-    gt = np.array([T.t for _, T in seq.groundtruth])
-    box = [*(gt.min(0) - [1.5, 1.5, 0.3]), *(gt.max(0) + [1.5, 1.5, 0.3])]
-    return root, out, cam, box
+def pnl_site(site_480):
+    return site_480
 
 
 def _cli(*args):

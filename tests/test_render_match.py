@@ -318,3 +318,26 @@ def test_blurred_frames_report_a_larger_uncertainty(rm_setup):
     assert expected > 1.5  # the motion is fast enough for the test to mean something
     assert scaled.sigma_deg == pytest.approx(plain.sigma_deg * expected, rel=0.02)
     assert scaled.sigma_m == pytest.approx(plain.sigma_m * expected, rel=0.02)
+
+
+def test_direct_tracking_needs_no_features_on_the_frame_and_stays_accurate(rm_setup, site_480):
+    """Between relocalizations the frame is aligned to the keyframe render's corner patches (no XFeat on it);
+    the same walk with direct tracking off (XFeat on every frame) for comparison, both against ground truth."""
+    from services.io.sequence import open_sequence
+    from services.localize.render_match import RMConfig
+
+    renderer, ext, db, _, _ = rm_setup
+    root, out, cam, _ = site_480
+    seq = open_sequence(out / "seq")
+    frames = list(seq)
+    for direct in (True, False):
+        tr = RenderMatchTracker(renderer, ext, db, RMConfig(direct_points=150 if direct else 0))
+        res = [tr.process(f.image, cam, stamp=float(f.stamp)) for f in frames]
+        ok = [(f, r) for f, r in zip(frames, res) if r.T_wc is not None]
+        assert res[0].status == Status.RELOCALIZED and len(ok) >= 7
+        err = np.array([seq.groundtruth_pose(f.stamp).distance_to(r.T_wc) for f, r in ok])
+        rmse = np.sqrt((err ** 2).mean(0))
+        print(f"R&M at 480x360, direct={direct}: {len(ok)} frames, {100 * rmse[0]:.2f} cm / {rmse[1]:.3f} deg")
+        assert rmse[0] < 0.015 and rmse[1] < 0.25, (direct, rmse)
+        featureless = sum("features_ms" not in r.timings for r in res[1:] if r.status == Status.TRACKING)
+        assert featureless >= 4 if direct else featureless == 0, (direct, featureless)

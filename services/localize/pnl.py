@@ -61,14 +61,14 @@ from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hammin
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 from services.localize.status import Status
-from services.prebuild.patches import PATCH_FILE, LandmarkPatches, align_to_patches, map_fingerprint
+from services.localize.direct import DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only
+from services.prebuild.patches import PATCH_FILE, LandmarkPatches, corner_scores, map_fingerprint
 from services.prebuild.stella_map import StellaMap, read_map
 
 __all__ = ["PnlConfig", "PnlResult", "PnlLocalizer", "Status"]
 
 log = logging.getLogger(__name__)
 
-_CHI2_2DOF = 5.991
 _DESC_PER_LANDMARK = 4
 
 
@@ -227,17 +227,9 @@ class _Frame:
     gray: np.ndarray | None = None  # undistorted grey float32, for patch alignment (see PnlLocalizer._gray)
 
 
-def _corner_scores(lp: LandmarkPatches, half: int = 6) -> np.ndarray:
-    """How corner-like each landmark patch is around its centre: the smaller eigenvalue of the gradient structure
-    over their sum (0 on an edge or a flat patch, 0.5 on an isotropic corner)."""
-    c = (lp.size - 1) // 2
-    a = lp.patches[:, c - half - 1: c + half + 2, c - half - 1: c + half + 2].astype(np.float32)
-    gx = 0.5 * (a[:, 1:-1, 2:] - a[:, 1:-1, :-2])
-    gy = 0.5 * (a[:, 2:, 1:-1] - a[:, :-2, 1:-1])
-    sxx, sxy, syy = (gx * gx).sum((1, 2)), (gx * gy).sum((1, 2)), (gy * gy).sum((1, 2))
-    tr = sxx + syy
-    lmin = 0.5 * (tr - np.sqrt((sxx - syy) ** 2 + 4 * sxy * sxy))
-    return np.where(tr > 1e-6, lmin / np.maximum(tr, 1e-6), 0.0)
+def _iso(w: np.ndarray) -> np.ndarray:
+    """Isotropic information matrices (M, 2, 2) from weights (M,)."""
+    return w[:, None, None] * np.eye(2)
 
 
 class PnlLocalizer:
@@ -255,7 +247,7 @@ class PnlLocalizer:
                 r = row.get(int(lid))
                 if r is not None:
                     self._patch_of_row[r] = j
-        self._corner = _corner_scores(patches) if patches is not None else np.zeros(0)
+        self._corner = corner_scores(patches.patches) if patches is not None else np.zeros(0)
         self._undistort: dict = {}
         orb = next(iter(stella_map.orb_params.values()))
         self._orb = orb
@@ -452,109 +444,16 @@ class PnlLocalizer:
         return rows[lm_i], kp_i, visible
 
     # ---- pose optimisation ------------------------------------------------------------------
-    def _optimize(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, kp: np.ndarray, rounds=(4, 3, 2),
-                  uv: np.ndarray | None = None, info: np.ndarray | None = None):
-        """Motion-only Gauss-Newton, Huber weights, chi-square outlier rounds. Returns (R, t, inlier mask, rmse_px).
-
-        The keypoints are measurements with information 1 / scale^(2 octave); ``uv`` and ``info`` (M, 2, 2), in
-        level-0 pixels^-2, replace them (patch alignments, whose precision differs along and across a patch's edges).
-        Residuals are whitened by each measurement's information, so the chi-square rounds and the RMSE are in
-        standard deviations whichever measurements are given.
-        """
-        P = self.idx.pos[rows]
-        uv = fr.uv[kp] if uv is None else uv
-        if info is None:  # (kp may be None when info is given)  # isotropic: L = sqrt(w) I
-            s = np.sqrt(fr.inv_sigma2[kp])
-            l11, l21, l22 = s, np.zeros_like(s), s
-        else:  # W = L L^T, L lower triangular; whitened residual L^T e
-            l11 = np.sqrt(np.maximum(info[:, 0, 0], 1e-12))
-            l21 = info[:, 1, 0] / l11
-            l22 = np.sqrt(np.maximum(info[:, 1, 1] - l21 * l21, 1e-12))
-        fx, fy, cx, cy = fr.K[0, 0], fr.K[1, 1], fr.K[0, 2], fr.K[1, 2]
-
-        def whitened(R, t, m):
-            Xc = P[m] @ R.T + t
-            x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-            iz = 1.0 / np.maximum(z, 1e-6)
-            ex = fx * x * iz + cx - uv[m, 0]
-            ey = fy * y * iz + cy - uv[m, 1]
-            a, b = l11[m], l21[m]
-            return a * ex + b * ey, l22[m] * ey, Xc
-
-        inl = np.ones(len(rows), bool)
-        huber = math.sqrt(_CHI2_2DOF)
-        for rnd, iters in enumerate(rounds):
-            for _ in range(iters):
-                e1, e2, Xc = whitened(R, t, inl)
-                x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-                iz = 1.0 / np.maximum(z, 1e-6)
-                e = np.sqrt(e1 * e1 + e2 * e2)
-                w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
-                a = fx * iz
-                b = fy * iz
-                # J = dproj/dXc @ [-[Xc]x | I]  (left perturbation on T_cw), then whitened like the residuals
-                Ju = np.stack([-a * x * y * iz, a * (z + x * x * iz), -a * y, a, np.zeros_like(a), -a * x * iz], 1)
-                Jv = np.stack([-b * (z + y * y * iz), b * x * y * iz, b * x, np.zeros_like(b), b, -b * y * iz], 1)
-                J1 = l11[inl, None] * Ju + l21[inl, None] * Jv
-                J2 = l22[inl, None] * Jv
-                H = (J1 * w[:, None]).T @ J1 + (J2 * w[:, None]).T @ J2
-                g = (J1 * w[:, None]).T @ e1 + (J2 * w[:, None]).T @ e2
-                try:
-                    dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
-                except np.linalg.LinAlgError:
-                    return R, t, np.zeros(len(rows), bool), float("inf")
-                dR = cv2.Rodrigues(dx[:3])[0]
-                R = dR @ R
-                t = dR @ t + dx[3:]
-                if np.abs(dx).max() < 1e-6:
-                    break
-            # classify all matches
-            e1, e2, Xc = whitened(R, t, slice(None))
-            e2s = e1 * e1 + e2 * e2
-            inl = (e2s <= _CHI2_2DOF) & (Xc[:, 2] > 0.05)
-            if inl.sum() < 6:
-                return R, t, inl, float("inf")
-        U, _, Vt = np.linalg.svd(R)
-        R = U @ Vt
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-            return np.eye(3), np.zeros(3), np.zeros(len(rows), bool), float("inf")
-        # RMSE of the whitened residuals: level-0 pixels with each keypoint's divided by its pyramid scale
-        px2 = e2s[inl]
-        rmse = float(math.sqrt(px2.mean())) if len(px2) else float("inf")
-        return R, t, inl, rmse
+    def _optimize(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, kp: np.ndarray, rounds=(4, 3, 2)):
+        """Motion-only Gauss-Newton on the keypoint matches (information 1 / scale^(2 octave) each), Huber
+        weights, chi-square outlier rounds. Returns (R, t, inlier mask, rmse in level-0 pixels with each
+        residual divided by its keypoint's pyramid scale)."""
+        return solve_motion_only(self.idx.pos[rows], fr.uv[kp], _iso(fr.inv_sigma2[kp]), fr.K, R, t, rounds)
 
     @staticmethod
-    def _covariance(fr: _Frame, R: np.ndarray, t: np.ndarray, P: np.ndarray, info: np.ndarray, rmse: float,
-                    floor: float = 0.5) -> tuple[float, float]:
-        """Predicted 1-sigma camera-centre (m) and orientation (deg) uncertainty from the inlier geometry (first order).
-
-        ``info``: each measurement's information, (M,) isotropic weights or (M, 2, 2); ``rmse`` (at least ``floor``)
-        scales it. With the left perturbation on T_cw the camera centre moves by -R^T v, so its covariance is the
-        translation block.
-        """
-        if len(P) < 6 or not math.isfinite(rmse):
-            return float("inf"), float("inf")
-        fx, fy = fr.K[0, 0], fr.K[1, 1]
-        Xc = P @ R.T + t
-        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-        iz = 1.0 / np.maximum(z, 1e-6)
-        a, b = fx * iz, fy * iz
-        zero = np.zeros_like(a)
-        Ju = np.stack([-a * x * y * iz, a * (z + x * x * iz), -a * y, a, zero, -a * x * iz], 1)
-        Jv = np.stack([-b * (z + y * y * iz), b * x * y * iz, b * x, zero, b, -b * y * iz], 1)
-        if info.ndim == 1:
-            H = (Ju * info[:, None]).T @ Ju + (Jv * info[:, None]).T @ Jv
-        else:
-            w00, w01, w11 = info[:, 0, 0, None], info[:, 0, 1, None], info[:, 1, 1, None]
-            cross = (Ju * w01).T @ Jv
-            H = (Ju * w00).T @ Ju + cross + cross.T + (Jv * w11).T @ Jv
-        try:
-            C = np.linalg.inv(H) * max(rmse, floor) ** 2
-        except np.linalg.LinAlgError:
-            return float("inf"), float("inf")
-        sr = math.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0))
-        st = math.sqrt(max(float(np.linalg.eigvalsh(C[3:, 3:]).max()), 0.0))
-        return st, math.degrees(sr)
+    def _covariance(fr: _Frame, R: np.ndarray, t: np.ndarray, P: np.ndarray, w: np.ndarray, rmse: float) -> tuple[float, float]:
+        """Predicted 1-sigma camera-centre (m) and orientation (deg) uncertainty of a keypoint solution."""
+        return cov_sigmas(pose_covariance(P, _iso(w), fr.K, R, t, rmse))
 
     def _track(self, fr: _Frame, T_wc_pred: Pose, coarse_radius: float, tm: dict) -> tuple[np.ndarray, np.ndarray, int, float] | None:
         self._features(fr, tm)
@@ -594,48 +493,15 @@ class PnlLocalizer:
         return r
 
     def _aligned(self, fr: _Frame, R: np.ndarray, t: np.ndarray, rows: np.ndarray, max_moved_px: float | None = 2.0) -> tuple | None:
-        """The pose solved again from landmarks ``rows`` (with patches) measured by aligning the live frame to their
-        patches (see :mod:`services.prebuild.patches`), as (R, t, inliers, whitened rmse, sigma_m, sigma_deg);
-        None when that does not hold up.
-
-        The alignment starts from each landmark's projection and, on patches that are edge-like in some
-        direction, stays near it along that direction: each measurement weighs by its patch's gradient
-        structure, and the alignment and the solve alternate (``align_passes``) so a first solve still pulled
-        towards the keypoint pose does not stay there."""
-        need = self.cfg.min_inliers // 2
-        if len(rows) < need:
-            return None
-        pidx = self._patch_of_row[rows]
-        gray = self._gray(fr)
-        P = self.idx.pos[rows]
-        X0 = P @ R.T + t
-        R1, t1, out = R, t, None
-        w = 1.0 / self.cfg.align_sigma_px ** 2
-        step = (float("inf"), float("inf"))
-        for _ in range(self.cfg.align_passes):
-            q, ok, info = align_to_patches(self.patches, pidx, P, R1, t1, fr.K, gray)
-            if ok.sum() < need:
-                break
-            R2, t2, inl2, rmse2 = self._optimize(fr, R1, t1, rows[ok], None, rounds=(4, 2), uv=q[ok], info=info[ok] * w)
-            # each measurement moved by at most a few pixels from the keypoint pose's projection, so must the
-            # landmarks' projections: a solve that moves them further (a degenerate set) is not kept (``max_moved_px``;
-            # None from a prediction, whose error the windows themselves bound)
-            X2 = P @ R2.T + t2
-            moved = np.median(np.linalg.norm(fr.K[0, 0] * (X0[:, :2] / X0[:, 2:3] - X2[:, :2] / np.maximum(X2[:, 2:3], 1e-6)), axis=1))
-            if (inl2.sum() < max(need, self.cfg.align_min_inlier_frac * ok.sum()) or not np.isfinite(rmse2)
-                    or (max_moved_px is not None and not moved <= max_moved_px)):
-                break
-            dR = R2 @ R1.T
-            step = (float(np.linalg.norm(R2.T @ t2 - R1.T @ t1)),
-                    math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2)))))
-            R1, t1 = R2, t2
-            sig = self._covariance(fr, R2, t2, P[ok][inl2], info[ok][inl2] * w, rmse2, floor=self.cfg.align_rmse_floor)
-            out = (R2, t2, int(inl2.sum()), rmse2, *sig, True)
-            if step[0] <= 0.5 * sig[0] and step[1] <= 0.5 * sig[1]:  # converged: the alignment moved no more
-                return out
-        if out is not None:  # not converged (a start too far for the windows): at least as uncertain as its last step
-            out = (*out[:4], max(out[4], step[0]), max(out[5], step[1]), True)
-        return out
+        """The pose solved from landmarks ``rows`` (with patches) measured by aligning the live frame to their
+        patches (:func:`services.localize.direct.align_and_solve`), as (R, t, inliers, whitened rmse, sigma_m,
+        sigma_deg, True); None when that does not hold up. ``max_moved_px``: from a keypoint pose, the
+        landmarks' projections may move at most this far (median; a larger move is a degenerate set)."""
+        cfg = self.cfg
+        dc = DirectConfig(passes=cfg.align_passes, sigma_px=cfg.align_sigma_px, rmse_floor=cfg.align_rmse_floor,
+                          min_inliers=cfg.min_inliers // 2, min_inlier_frac=cfg.align_min_inlier_frac, max_moved_px=max_moved_px)
+        d = align_and_solve(self.patches, self._patch_of_row[rows], self.idx.pos[rows], R, t, fr.K, self._gray(fr), dc)
+        return None if d is None else (d.R, d.t, d.inliers, d.rmse, d.sigma_m, d.sigma_deg, True)
 
     def _align_rows(self, fr: _Frame, R: np.ndarray, t: np.ndarray, lm: np.ndarray, kp: np.ndarray, inl: np.ndarray,
                     visible: np.ndarray) -> np.ndarray:

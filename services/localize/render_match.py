@@ -56,8 +56,10 @@ from services.geometry.blur import blur_length_px, motion_blur_linear
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
+from services.localize.direct import DirectConfig, align_and_solve
 from services.localize.status import Status
-from services.render.depth_sampling import support_fraction
+from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
+from services.render.depth_sampling import plane_normals, support_fraction
 
 __all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "normalised_gray", "refine_matches_lk"]
 
@@ -99,6 +101,9 @@ class RMConfig:
     ransac_min_iterations: int = 100  # while tracking (relocalization keeps poselib's 1000)
     lk_window: int = 15  # patch (pixels at the render's resolution) re-aligning each match by Lucas-Kanade; 0 = off
     lk_max_px: float = 2.0  # a match whose patch lands further than this from its keypoint keeps the keypoint
+    direct_points: int = 150  # tracking first aligns the frame to this many corner patches of the keyframe render
+    #                           from the prediction (no XFeat on the frame); 0 = off (see _direct)
+    direct_min_corner: float = 0.2  # those patches' corner score (0 edge or flat .. 0.5 isotropic corner)
 
 
 @dataclass
@@ -107,11 +112,12 @@ class Keyframe:
     frame_camera: Camera  # the live camera this keyframe serves
     scale: float  # render resolution relative to the live frame (the live frame is matched at it)
     render: object  # services.render.renderer.Render
-    feats: Features  # only keypoints with measured, smooth depth
-    xyz: np.ndarray  # (N, 3) world points of those keypoints
+    feats: Features | None  # only keypoints with measured, smooth depth (None until first needed: see _sharp_points)
+    xyz: np.ndarray | None  # (N, 3) world points of those keypoints
     gray: np.ndarray | None = None  # the render in normalised grey (Lucas-Kanade's template)
     ref_inliers: int = 0
     blurred: tuple | None = None  # (start pose, end pose, features, world points, grey) of the last blurred render
+    direct: tuple | None = None  # (LandmarkPatches, world points): corner patches of the render, for direct tracking
 
 
 @dataclass
@@ -198,6 +204,7 @@ class RenderMatchTracker:
         # exposure calibration: per candidate (fraction of the frame interval) the summed share of inliers it got
         self.calib_scores = np.zeros(len(cfg.calib_fractions))
         self.calib_intervals: list[float] = []
+        self._undistort: dict = {}
         self.reset()
 
     def reset(self) -> None:
@@ -270,9 +277,15 @@ class RenderMatchTracker:
             if holes <= self.cfg.max_holes or level == self.cfg.coarse_levels or min(cam.width, cam.height) < 128:
                 break
             s /= 2
-        feats, xyz = self._points(r, r.rgb, fr.tm)
         gray = normalised_gray(r.rgb) if self.cfg.lk_window else None
-        return Keyframe(T_wc, fr.camera, s, r, feats, xyz, gray)
+        return Keyframe(T_wc, fr.camera, s, r, None, None, gray)
+
+    def _sharp_points(self, kf: Keyframe, fr: _Frame) -> tuple:
+        """The keyframe render's XFeat features, world points and grey image (features extracted on first use:
+        a keyframe that direct tracking serves never needs them)."""
+        if kf.feats is None:
+            kf.feats, kf.xyz = self._points(kf.render, kf.render.rgb, fr.tm)
+        return kf.feats, kf.xyz, kf.gray
 
     def _blur_px(self, fr: _Frame, exposure_s: float | None) -> float:
         if fr.motion is None or not exposure_s:
@@ -361,7 +374,7 @@ class RenderMatchTracker:
             results, points = [], []
             for frac in self.cfg.calib_fractions:  # scored by the XFeat matches alone: patch alignment would blur the choice
                 e = frac * fr.motion[1]
-                points.append(self._blurred_points(kf, fr, e, reuse=False) if self._blur_px(fr, e) >= 1.0 else (kf.feats, kf.xyz, kf.gray))
+                points.append(self._blurred_points(kf, fr, e, reuse=False) if self._blur_px(fr, e) >= 1.0 else self._sharp_points(kf, fr))
                 results.append(self._solve(live, *points[-1][:2], None, fr, initial, px))
             inl = np.array([0 if r is None else r.n_inliers for r in results], float)
             if self._plausible(results[int(np.argmax(inl))]):
@@ -378,7 +391,69 @@ class RenderMatchTracker:
         exposure = self._exposure(fr)
         if self._blur_px(fr, exposure) >= self.cfg.blur_min_px:
             return self._blurred_points(kf, fr, exposure)
-        return kf.feats, kf.xyz, kf.gray
+        return self._sharp_points(kf, fr)
+
+    def _direct_patches(self, kf: Keyframe) -> tuple[LandmarkPatches, np.ndarray]:
+        """Corner patches of the keyframe render with the world points and surface normals behind them,
+        spread over the image (built once per keyframe)."""
+        if kf.direct is None:
+            r = kf.render
+            gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
+            h, w = gray.shape
+            c = cv2.goodFeaturesToTrack(gray, maxCorners=8 * self.cfg.direct_points, qualityLevel=0.005,
+                                        minDistance=max(3.0, w / 80), blockSize=5)
+            uv = np.zeros((0, 2)) if c is None else c.reshape(-1, 2).astype(np.float64)
+            m = 12 * w / 640
+            uv = uv[(uv[:, 0] >= m) & (uv[:, 0] < w - 1 - m) & (uv[:, 1] >= m) & (uv[:, 1] < h - 1 - m)]
+            X, ok, planes = r.surface_points(uv, self.cfg.depth_radius, self.cfg.depth_max_residual)
+            uv, X, planes = uv[ok], X[ok], planes[ok]
+            patches = np.clip(sample_patches(gray, uv, 23) + 0.5, 0, 255).astype(np.uint8)
+            keep = np.flatnonzero(corner_scores(patches) >= self.cfg.direct_min_corner)[: self.cfg.direct_points]
+            log.debug("direct patches: %d corners, %d with depth, %d corner-like", 0 if c is None else len(c), len(uv), len(keep))
+            cam = r.camera
+            normals = plane_normals(uv[keep], planes[keep], cam.fx, cam.fy, cam.cx, cam.cy) @ kf.T_wc.R.T  # world axes
+            T_cw = kf.T_wc.inverse()
+            lp = LandmarkPatches(np.arange(len(keep)), patches[keep], normals, np.zeros(len(keep), np.int64),
+                                 np.column_stack([T_cw.R, T_cw.t])[None], cam.K.copy())
+            kf.direct = (lp, X[keep])
+        return kf.direct
+
+    def _undistorted_gray(self, fr: _Frame) -> np.ndarray:
+        """The frame in grey at full resolution, undistorted (float32), once per frame."""
+        if "undistorted" not in fr.gray:
+            img = fr.image
+            g = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+            cam = fr.camera
+            if cam.is_distorted:
+                key = (cam.width, cam.height, tuple(cam.K.ravel().tolist()), tuple(np.ravel(cam.dist).tolist()))
+                if key not in self._undistort:
+                    self._undistort = {key: cv2.initUndistortRectifyMap(cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1)}
+                g = cv2.remap(g, *self._undistort[key], cv2.INTER_LINEAR)
+            fr.gray["undistorted"] = g.astype(np.float32)
+        return fr.gray["undistorted"]
+
+    def _direct(self, kf: Keyframe, fr: _Frame, T_pred: Pose) -> PnpResult | None:
+        """Track without features on the frame: align it to the keyframe render's corner patches warped into the
+        predicted view (:mod:`services.localize.direct`) and solve. None when it does not converge."""
+        t0 = time.perf_counter()
+        lp, P = self._direct_patches(kf)
+        cam = fr.camera
+        T_cw = T_pred.inverse()
+        Xc = P @ T_cw.R.T + T_cw.t
+        z = np.maximum(Xc[:, 2], 1e-6)
+        u, v = cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy
+        m = 12 * cam.width / 640
+        vis = np.flatnonzero((Xc[:, 2] > 0.1) & (u >= m) & (u < cam.width - 1 - m) & (v >= m) & (v < cam.height - 1 - m))
+        d = None
+        if len(vis) >= self.cfg.min_inliers:
+            d = align_and_solve(lp, vis, P[vis], T_cw.R, T_cw.t, cam.K, self._undistorted_gray(fr),
+                                DirectConfig(min_inliers=self.cfg.min_inliers))
+        fr.tm["direct_ms"] = fr.tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+        if d is None:
+            return None
+        sigma_px = DirectConfig().sigma_px
+        return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * sigma_px, 0, d.cov_right_wc(), 1.0,
+                         float(np.degrees(1.0 / max(cam.fx, cam.fy))))
 
     def _plausible(self, r: PnpResult | None) -> bool:
         """Enough inliers at a small reprojection error, uncertainty within ``track_sigma_factor`` x the
@@ -450,14 +525,30 @@ class RenderMatchTracker:
                 D, dt = fr.motion
                 T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
             kf = self.kf
+            direct = self.cfg.direct_points > 0 and self._blur_px(fr, self._exposure(fr)) < self.cfg.blur_min_px
             if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
-                r = self._render_and_refine(fr, T_pred, tracking=True)
+                new_kf = None
+                if direct and kf is not None:  # a new render, tracked into directly: XFeat only if that fails
+                    new_kf = self._keyframe(T_pred, fr)
+                    r = self._direct(new_kf, fr, T_pred)
+                    if self._good(r) and not self._far(r.T_wc, new_kf):
+                        self.kf = new_kf
+                    else:
+                        r = None
+                if r is None:
+                    r = self._render_and_refine(fr, T_pred, tracking=True, kf=new_kf)
                 rerendered = True
             else:
-                r = self._match(kf, fr, T_pred)
-                if not self._good(r) or self._far(r.T_wc, kf) or r.n_inliers < self.cfg.rerender_inlier_ratio * kf.ref_inliers:
-                    r = self._render_and_refine(fr, r.T_wc if self._plausible(r) else T_pred, tracking=True)
-                    rerendered = True
+                r = None
+                if direct:
+                    r = self._direct(kf, fr, T_pred)  # no XFeat on the frame while the prediction is close
+                    if not self._good(r) or self._far(r.T_wc, kf):
+                        r = None
+                if r is None:
+                    r = self._match(kf, fr, T_pred)
+                    if not self._good(r) or self._far(r.T_wc, kf) or r.n_inliers < self.cfg.rerender_inlier_ratio * kf.ref_inliers:
+                        r = self._render_and_refine(fr, r.T_wc if self._plausible(r) else T_pred, tracking=True)
+                        rerendered = True
         if not self._good(r) and self.T_last is None and self.recent is not None:
             # re-acquire near the last good pose: a blurred or featureless frame or two should not cost a database query
             T_rec, s_rec = self.recent

@@ -26,7 +26,8 @@ import numpy as np
 
 from services.io.atomic import atomic_write
 
-__all__ = ["PATCH_FILE", "PATCH_FORMAT_VERSION", "LandmarkPatches", "map_fingerprint", "sample_patches", "align_to_patches"]
+__all__ = ["PATCH_FILE", "PATCH_FORMAT_VERSION", "LandmarkPatches", "map_fingerprint", "sample_patches", "align_to_patches",
+           "corner_scores"]
 
 PATCH_FILE = "patches.npz"
 PATCH_FORMAT_VERSION = 1
@@ -72,6 +73,19 @@ class LandmarkPatches:
         if p.patches.shape[0] != n or p.normals.shape != (n, 3) or len(p.src) != n or (n and p.src.max() >= len(p.src_T_cw)):
             raise ValueError(f"{path}: inconsistent landmark patch arrays")
         return p
+
+
+def corner_scores(patches: np.ndarray, half: int = 6) -> np.ndarray:
+    """How corner-like each patch (N, S, S) is around its centre: the smaller eigenvalue of the gradient
+    structure over their sum (0 on an edge or a flat patch, 0.5 on an isotropic corner)."""
+    c = (patches.shape[1] - 1) // 2
+    a = patches[:, c - half - 1: c + half + 2, c - half - 1: c + half + 2].astype(np.float32)
+    gx = 0.5 * (a[:, 1:-1, 2:] - a[:, 1:-1, :-2])
+    gy = 0.5 * (a[:, 2:, 1:-1] - a[:, :-2, 1:-1])
+    sxx, sxy, syy = (gx * gx).sum((1, 2)), (gx * gy).sum((1, 2)), (gy * gy).sum((1, 2))
+    tr = sxx + syy
+    lmin = 0.5 * (tr - np.sqrt((sxx - syy) ** 2 + 4 * sxy * sxy))
+    return np.where(tr > 1e-6, lmin / np.maximum(tr, 1e-6), 0.0)
 
 
 def map_fingerprint(lm_ids: np.ndarray, lm_pos: np.ndarray) -> str:

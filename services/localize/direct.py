@@ -1,0 +1,199 @@
+"""Direct tracking: a camera pose from patches aligned into the live frame, no keypoints (numpy + OpenCV only).
+
+Used by the light P&L localizer (patches stored beside the map) and by Render & Match (patches cut from the
+keyframe render). Each patch is warped into the live view through its surface's tangent plane and the live
+frame is aligned to it (:func:`services.prebuild.patches.align_to_patches`), which returns where each
+point appears and that measurement's 2x2 information (its patch's gradient structure: an edge-like patch
+says nothing along the edge). The pose is then solved by motion-only Gauss-Newton, whitened by those
+informations, and alignment and solve alternate until the pose moves less than half its predicted sigma.
+
+Poses here are world-to-camera (R, t) with a left perturbation exp(dx) T_cw, dx = (omega, v) in camera axes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.geometry.se3 import Pose
+from services.prebuild.patches import LandmarkPatches, align_to_patches
+
+__all__ = ["DirectConfig", "DirectPose", "solve_motion_only", "pose_covariance", "cov_sigmas", "align_and_solve"]
+
+CHI2_2DOF = 5.991
+
+
+@dataclass(frozen=True)
+class DirectConfig:
+    passes: int = 3  # alignment and solve alternate until the pose moves less than half its sigma, at most this often
+    sigma_px: float = 0.5  # a corner patch's alignment noise (1 sigma, px; 0.2-0.3 px measured at the true pose)
+    rmse_floor: float = 1.0  # the covariance assumes at least sigma_px of noise (whitened RMSE floor)
+    min_inliers: int = 15
+    min_inlier_frac: float = 0.5  # of the converged alignments, this share must agree with the pose
+    max_moved_px: float | None = None  # from a keypoint pose: the projections may move at most this far (median)
+
+
+@dataclass
+class DirectPose:
+    R: np.ndarray  # world-to-camera rotation
+    t: np.ndarray  # world-to-camera translation
+    inliers: int
+    rmse: float  # whitened: standard deviations of sigma_px
+    cov: np.ndarray  # (6, 6) of dx = (omega, v), left perturbation of T_cw
+    converged: bool
+
+    @property
+    def T_wc(self) -> Pose:
+        return Pose(self.R.T, -self.R.T @ self.t)
+
+    @property
+    def sigma_m(self) -> float:
+        """1-sigma camera-centre uncertainty (largest axis); at least the last step when not converged."""
+        return cov_sigmas(self.cov)[0]
+
+    @property
+    def sigma_deg(self) -> float:
+        return cov_sigmas(self.cov)[1]
+
+    def cov_right_wc(self) -> np.ndarray:
+        """The covariance as services.geometry.pnp.PnpResult keeps it: a right perturbation of T_wc,
+        (translation, rotation) in camera axes (T_wc exp(delta) = (exp(dx) T_cw)^-1: delta = -dx, reordered)."""
+        o = [3, 4, 5, 0, 1, 2]
+        return self.cov[np.ix_(o, o)]
+
+
+def cov_sigmas(C: np.ndarray) -> tuple[float, float]:
+    """The largest 1-sigma camera-centre (m) and orientation (deg) uncertainties of a covariance of (omega, v)."""
+    if not np.all(np.isfinite(C)):
+        return float("inf"), float("inf")
+    s = [math.sqrt(max(float(np.linalg.eigvalsh(B).max()), 0.0)) for B in (C[3:, 3:], C[:3, :3])]
+    return s[0], math.degrees(s[1])
+
+
+def _projection_jacobians(Xc: np.ndarray, fx: float, fy: float) -> tuple[np.ndarray, np.ndarray]:
+    """d(u, v)/d(omega, v) of camera points Xc under a left perturbation of T_cw."""
+    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    iz = 1.0 / np.maximum(z, 1e-6)
+    a, b = fx * iz, fy * iz
+    zero = np.zeros_like(a)
+    Ju = np.stack([-a * x * y * iz, a * (z + x * x * iz), -a * y, a, zero, -a * x * iz], 1)
+    Jv = np.stack([-b * (z + y * y * iz), b * x * y * iz, b * x, zero, b, -b * y * iz], 1)
+    return Ju, Jv
+
+
+def _sqrt_info(info: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lower-triangular L with L L^T = info, as (l11, l21, l22): the whitened residual is L^T e."""
+    l11 = np.sqrt(np.maximum(info[:, 0, 0], 1e-12))
+    l21 = info[:, 1, 0] / l11
+    l22 = np.sqrt(np.maximum(info[:, 1, 1] - l21 * l21, 1e-12))
+    return l11, l21, l22
+
+
+def solve_motion_only(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                      rounds=(4, 3, 2)) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Gauss-Newton on the world-to-camera pose (R, t) from world points ``P`` seen at undistorted pixels ``uv``,
+    each with information ``info`` (M, 2, 2) in pixels^-2: Huber weights, and after each round of iterations
+    the matches are classified again by chi-square (2 dof, 95 %) on their whitened residuals.
+    Returns (R, t, inlier mask, whitened RMSE of the inliers); the RMSE is inf when fewer than 6 remain."""
+    l11, l21, l22 = _sqrt_info(info)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+
+    def whitened(R, t, m):
+        Xc = P[m] @ R.T + t
+        iz = 1.0 / np.maximum(Xc[:, 2], 1e-6)
+        ex = fx * Xc[:, 0] * iz + cx - uv[m, 0]
+        ey = fy * Xc[:, 1] * iz + cy - uv[m, 1]
+        return l11[m] * ex + l21[m] * ey, l22[m] * ey, Xc
+
+    inl = np.ones(len(P), bool)
+    huber = math.sqrt(CHI2_2DOF)
+    e2s = np.zeros(len(P))
+    for iters in rounds:
+        for _ in range(iters):
+            e1, e2, Xc = whitened(R, t, inl)
+            e = np.sqrt(e1 * e1 + e2 * e2)
+            w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
+            Ju, Jv = _projection_jacobians(Xc, fx, fy)
+            J1 = l11[inl, None] * Ju + l21[inl, None] * Jv
+            J2 = l22[inl, None] * Jv
+            H = (J1 * w[:, None]).T @ J1 + (J2 * w[:, None]).T @ J2
+            g = (J1 * w[:, None]).T @ e1 + (J2 * w[:, None]).T @ e2
+            try:
+                dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+            except np.linalg.LinAlgError:
+                return R, t, np.zeros(len(P), bool), float("inf")
+            dR = cv2.Rodrigues(dx[:3])[0]
+            R = dR @ R
+            t = dR @ t + dx[3:]
+            if np.abs(dx).max() < 1e-6:
+                break
+        e1, e2, Xc = whitened(R, t, slice(None))
+        e2s = e1 * e1 + e2 * e2
+        inl = (e2s <= CHI2_2DOF) & (Xc[:, 2] > 0.05)
+        if inl.sum() < 6:
+            return R, t, inl, float("inf")
+    U, _, Vt = np.linalg.svd(R)
+    R = U @ Vt
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        return np.eye(3), np.zeros(3), np.zeros(len(P), bool), float("inf")
+    return R, t, inl, float(math.sqrt(e2s[inl].mean()))
+
+
+def pose_covariance(P: np.ndarray, info: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, rmse: float,
+                    floor: float = 0.5) -> np.ndarray:
+    """First-order covariance (6, 6) of dx = (omega, v) from the inliers ``P`` with information ``info``
+    (M, 2, 2), scaled by max(rmse, floor)^2; all inf when degenerate."""
+    bad = np.full((6, 6), np.inf)
+    if len(P) < 6 or not math.isfinite(rmse):
+        return bad
+    Ju, Jv = _projection_jacobians(P @ R.T + t, K[0, 0], K[1, 1])
+    w00, w01, w11 = info[:, 0, 0, None], info[:, 0, 1, None], info[:, 1, 1, None]
+    cross = (Ju * w01).T @ Jv
+    H = (Ju * w00).T @ Ju + cross + cross.T + (Jv * w11).T @ Jv
+    try:
+        return np.linalg.inv(H) * max(rmse, floor) ** 2
+    except np.linalg.LinAlgError:
+        return bad
+
+
+def align_and_solve(lp: LandmarkPatches, pidx: np.ndarray, P: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray,
+                    gray: np.ndarray, cfg: DirectConfig = DirectConfig()) -> DirectPose | None:
+    """The pose from aligning the live frame (``gray``: undistorted, float32, pinhole ``K``) to the patches
+    ``pidx`` of world points ``P``, starting from the world-to-camera pose (R, t). None when too few
+    alignments converge or agree; a pose that has not converged after ``cfg.passes`` carries its last step
+    in its covariance (it is at least that uncertain)."""
+    if len(P) < cfg.min_inliers:
+        return None
+    w = 1.0 / cfg.sigma_px ** 2
+    X0 = P @ R.T + t
+    u0 = X0[:, :2] / X0[:, 2:3]
+    out, step = None, (float("inf"), float("inf"))
+    for _ in range(cfg.passes):
+        q, ok, info = align_to_patches(lp, pidx, P, R, t, K, gray)
+        if ok.sum() < cfg.min_inliers:
+            break
+        R2, t2, inl, rmse = solve_motion_only(P[ok], q[ok], info[ok] * w, K, R, t, rounds=(4, 2))
+        if inl.sum() < max(cfg.min_inliers, cfg.min_inlier_frac * ok.sum()) or not math.isfinite(rmse):
+            break
+        if cfg.max_moved_px is not None:
+            X2 = P @ R2.T + t2
+            moved = np.median(np.linalg.norm(K[0, 0] * (u0 - X2[:, :2] / np.maximum(X2[:, 2:3], 1e-6)), axis=1))
+            if not moved <= cfg.max_moved_px:  # a degenerate set
+                break
+        dR = R2 @ R.T
+        step = (float(np.linalg.norm(R2.T @ t2 - R.T @ t)), math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2)))))
+        R, t = R2, t2
+        cov = pose_covariance(P[ok][inl], info[ok][inl] * w, K, R, t, rmse, cfg.rmse_floor)
+        out = DirectPose(R, t, int(inl.sum()), rmse, cov, False)
+        if step[0] <= 0.5 * out.sigma_m and step[1] <= 0.5 * out.sigma_deg:
+            out.converged = True
+            return out
+    if out is not None:  # not converged: at least as uncertain as the last step (isotropically, in both blocks)
+        c = out.cov.copy()
+        c[3:, 3:] += np.eye(3) * step[0] ** 2
+        c[:3, :3] += np.eye(3) * math.radians(step[1]) ** 2
+        out.cov = c
+    return out
