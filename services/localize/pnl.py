@@ -107,7 +107,7 @@ class PnlConfig:
     direct_landmarks: int = 120  # tracking first aligns this many visible landmarks from the prediction, no ORB; 0: off
     align_passes: int = 3  # alignment and pose solve alternate until the pose moves less than half its sigma, at most this often
     align_sigma_px: float = 0.5  # a corner patch's alignment noise (1 sigma, px; measured 0.2-0.3 px at the true pose)
-    align_rmse_floor: float = 1.0  # the aligned solution's covariance assumes at least align_sigma_px of noise  # px: the aligned solution's covariance assumes at least this noise
+    align_rmse_floor: float = 1.0  # the aligned solution's covariance assumes at least align_sigma_px of noise (whitened RMSE floor)
 
 
 @dataclass
