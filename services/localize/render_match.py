@@ -43,6 +43,7 @@ Three things keep it accurate where a plain render-and-match is not:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -116,8 +117,10 @@ class Keyframe:
     xyz: np.ndarray | None  # (N, 3) world points of those keypoints
     gray: np.ndarray | None = None  # the render in normalised grey (Lucas-Kanade's template)
     ref_inliers: int = 0
-    blurred: tuple | None = None  # (start pose, end pose, features, world points, grey) of the last blurred render
-    direct: tuple | None = None  # (LandmarkPatches, world points): corner patches of the render, for direct tracking
+    blurred_img: tuple | None = None  # (start pose, end pose, grey image) of the last blurred render
+    blurred: tuple | None = None  # (features, world points, normalised grey) of that blurred render
+    direct: tuple | None = None  # (LandmarkPatches, world points, render pixels): corner patches, for direct tracking
+    direct_blurred: LandmarkPatches | None = None  # the same corners' patches cut from the blurred render
 
 
 @dataclass
@@ -293,11 +296,11 @@ class RenderMatchTracker:
         D, dt = fr.motion
         return blur_length_px(fr.camera, Pose.identity(), Pose.identity().interpolate(D, exposure_s / dt))
 
-    def _blurred_points(self, kf: Keyframe, fr: _Frame, exposure_s: float, reuse: bool = True) -> tuple:
-        """The keyframe's features after blurring its render with the frame's motion over ``exposure_s``.
+    def _blurred_image(self, kf: Keyframe, fr: _Frame, exposure_s: float, reuse: bool = True) -> tuple[np.ndarray, bool]:
+        """The keyframe render in grey blurred with the frame's motion over ``exposure_s``, and whether it is new.
 
         Consecutive frames move alike: the last blurred render is reused while its blur's end poses are
-        within a tenth of the blur length (at least a pixel) of this frame's, saving a render XFeat pass.
+        within a tenth of the blur length (at least a pixel) of this frame's.
         """
         D, dt = fr.motion
         blur = self._blur_px(fr, exposure_s)
@@ -305,21 +308,28 @@ class RenderMatchTracker:
         half = 0.5 * (1 - 1 / n) * exposure_s / dt  # first and last of n samples spread over the exposure
         ident = Pose.identity()
         Ta, Tb = kf.T_wc @ ident.interpolate(D, -half), kf.T_wc @ ident.interpolate(D, half)
-        if reuse and kf.blurred is not None:
-            Ta0, Tb0, *points = kf.blurred
+        if reuse and kf.blurred_img is not None:
+            Ta0, Tb0, img = kf.blurred_img
             tol = max(1.0, 0.1 * blur)
             if blur_length_px(fr.camera, Ta, Ta0) <= tol and blur_length_px(fr.camera, Tb, Tb0) <= tol:
-                return tuple(points)
+                return img, False
         t0 = time.perf_counter()
         r = kf.render
         gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)  # XFeat sees grey anyway: a third of the warping
         img = motion_blur_linear(gray, r.depth_filled, r.camera, kf.T_wc, Ta, Tb, n)
         fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         img = np.clip(img + 0.5, 0, 255).astype(np.uint8)
-        feats, xyz = self._points(r, img, fr.tm)
-        points = (feats, xyz, normalised_gray(img) if self.cfg.lk_window else None)
-        kf.blurred = (Ta, Tb, *points)
-        return points
+        kf.blurred_img, kf.blurred, kf.direct_blurred = (Ta, Tb, img), None, None
+        return img, True
+
+    def _blurred_points(self, kf: Keyframe, fr: _Frame, exposure_s: float, reuse: bool = True) -> tuple:
+        """The keyframe's features, world points and grey image after blurring its render with the frame's
+        motion over ``exposure_s`` (reused with the blurred render: a render XFeat pass saved)."""
+        img, new = self._blurred_image(kf, fr, exposure_s, reuse)
+        if new or kf.blurred is None:
+            feats, xyz = self._points(kf.render, img, fr.tm)
+            kf.blurred = (feats, xyz, normalised_gray(img) if self.cfg.lk_window else None)
+        return kf.blurred
 
     def _solve(self, live: Features, feats: Features, xyz: np.ndarray, gray: np.ndarray | None, fr: _Frame,
                initial: Pose | None, px_factor: float = 1.0) -> PnpResult | None:
@@ -393,7 +403,7 @@ class RenderMatchTracker:
             return self._blurred_points(kf, fr, exposure)
         return self._sharp_points(kf, fr)
 
-    def _direct_patches(self, kf: Keyframe) -> tuple[LandmarkPatches, np.ndarray]:
+    def _direct_patches(self, kf: Keyframe) -> tuple[LandmarkPatches, np.ndarray, np.ndarray]:
         """Corner patches of the keyframe render with the world points and surface normals behind them,
         spread over the image (built once per keyframe)."""
         if kf.direct is None:
@@ -415,7 +425,7 @@ class RenderMatchTracker:
             T_cw = kf.T_wc.inverse()
             lp = LandmarkPatches(np.arange(len(keep)), patches[keep], normals, np.zeros(len(keep), np.int64),
                                  np.column_stack([T_cw.R, T_cw.t])[None], cam.K.copy())
-            kf.direct = (lp, X[keep])
+            kf.direct = (lp, X[keep], uv[keep])
         return kf.direct
 
     def _undistorted_gray(self, fr: _Frame) -> np.ndarray:
@@ -436,7 +446,14 @@ class RenderMatchTracker:
         """Track without features on the frame: align it to the keyframe render's corner patches warped into the
         predicted view (:mod:`services.localize.direct`) and solve. None when it does not converge."""
         t0 = time.perf_counter()
-        lp, P = self._direct_patches(kf)
+        lp, P, uv = self._direct_patches(kf)
+        exposure = self._exposure(fr)
+        blur = self._blur_px(fr, exposure)
+        if blur >= self.cfg.blur_min_px:  # a blurred frame aligns to the same corners cut from the blurred render
+            img, _ = self._blurred_image(kf, fr, exposure)
+            if kf.direct_blurred is None:
+                kf.direct_blurred = dataclasses.replace(lp, patches=np.clip(sample_patches(img, uv, lp.size) + 0.5, 0, 255).astype(np.uint8))
+            lp = kf.direct_blurred
         cam = fr.camera
         T_cw = T_pred.inverse()
         Xc = P @ T_cw.R.T + T_cw.t
@@ -451,8 +468,11 @@ class RenderMatchTracker:
         fr.tm["direct_ms"] = fr.tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         if d is None:
             return None
-        sigma_px = DirectConfig().sigma_px
-        return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * sigma_px, 0, d.cov_right_wc(), 1.0,
+        cov = d.cov_right_wc()
+        blur_f = blur * self._base_scale(cam)  # as XFeat would see it: the same scaling as its matches get (_solve)
+        if self.cfg.blur_sigma_px > 0 and blur_f > self.cfg.blur_sigma_px:
+            cov = cov * (blur_f / self.cfg.blur_sigma_px) ** 2
+        return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * DirectConfig().sigma_px, 0, cov, 1.0,
                          float(np.degrees(1.0 / max(cam.fx, cam.fy))))
 
     def _plausible(self, r: PnpResult | None) -> bool:
@@ -525,7 +545,7 @@ class RenderMatchTracker:
                 D, dt = fr.motion
                 T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
             kf = self.kf
-            direct = self.cfg.direct_points > 0 and self._blur_px(fr, self._exposure(fr)) < self.cfg.blur_min_px
+            direct = self.cfg.direct_points > 0
             if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
                 new_kf = None
                 if direct and kf is not None:  # a new render, tracked into directly: XFeat only if that fails
