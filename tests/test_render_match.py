@@ -341,3 +341,25 @@ def test_direct_tracking_needs_no_features_on_the_frame_and_stays_accurate(rm_se
         assert rmse[0] < 0.015 and rmse[1] < 0.25, (direct, rmse)
         featureless = sum("features_ms" not in r.timings for r in res[1:] if r.status == Status.TRACKING)
         assert featureless >= 4 if direct else featureless == 0, (direct, featureless)
+
+
+def test_a_relocalizing_frame_s_blur_is_read_from_the_image(rm_setup, site_480):
+    """With no motion to predict it, a relocalized frame's blur is read against the render at its pose (the
+    line kernel that, blurring the render, correlates best with the frame): a sharp frame reads as sharp,
+    one smeared by 24 px reads as about that much, so its covariance gets scaled like a tracked blurred one."""
+    import cv2
+
+    from services.io.sequence import open_sequence
+    from services.localize.render_match import _Frame
+
+    renderer, ext, db, _, _ = rm_setup
+    root, out, cam, _ = site_480
+    seq = open_sequence(out / "seq")
+    f = seq.read(2)
+    tr = RenderMatchTracker(renderer, ext, db)
+    kf = tr._keyframe(seq.groundtruth_pose(f.stamp), _Frame(f.image, cam, {}, None, 0.0, None))
+    line = np.full((1, 24), 1 / 24, np.float32)
+    smeared = cv2.filter2D(f.image, -1, line, borderType=cv2.BORDER_REFLECT)
+    sharp_px = tr._image_blur_px(_Frame(f.image, cam, {}, None, 0.0, None), kf)
+    smeared_px = tr._image_blur_px(_Frame(smeared, cam, {}, None, 0.0, None), kf)
+    assert sharp_px <= 8 and 14 <= smeared_px <= 40, (sharp_px, smeared_px)

@@ -105,6 +105,8 @@ class RMConfig:
     direct_points: int = 150  # tracking first aligns the frame to this many corner patches of the keyframe render
     #                           from the prediction (no XFeat on the frame); 0 = off (see _direct)
     direct_min_corner: float = 0.2  # those patches' corner score (0 edge or flat .. 0.5 isotropic corner)
+    blur_probe_px: tuple[float, ...] = (0, 4, 8, 12, 16, 24, 32, 48)  # blur lengths (px at 640 wide) tried on the render
+    #                                     at a relocalized pose to read the frame's blur from the image; () = off
 
 
 @dataclass
@@ -475,6 +477,48 @@ class RenderMatchTracker:
         return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * DirectConfig().sigma_px, 0, cov, 1.0,
                          float(np.degrees(1.0 / max(cam.fx, cam.fy))))
 
+    def _image_blur_px(self, fr: _Frame, kf: Keyframe) -> float:
+        """The frame's motion blur (frame pixels) read from the image: the length of the line kernel (over four
+        directions) that, blurring the keyframe render, correlates best with the frame (both as the camera
+        sees them, distortion included; at <= 320 px wide)."""
+        t0 = time.perf_counter()
+        ref = cv2.cvtColor(kf.render.rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+        s = min(1.0, 320 / ref.shape[1])  # blur lengths are long, detail is not needed
+        ref = cv2.resize(ref, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else ref
+        h, w = ref.shape
+        img = fr.image if fr.image.ndim == 2 else cv2.cvtColor(fr.image, cv2.COLOR_BGR2GRAY)
+        live = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+        m = max(4, w // 16)
+        live = live[m:-m, m:-m]
+        live = (live - live.mean()) / (live.std() + 1e-6)
+        best, best_len = -np.inf, 0.0
+        for length in self.cfg.blur_probe_px:
+            k = max(1, int(round(length * w / 640)))
+            for ang in ([0.0] if k == 1 else [0.0, 45.0, 90.0, 135.0]):
+                ker = np.zeros((k, k), np.float32)
+                c = (k - 1) / 2
+                for j in range(k):  # a line through the centre at this angle
+                    ker[int(round(c + (j - c) * np.sin(np.radians(ang)))), int(round(c + (j - c) * np.cos(np.radians(ang))))] = 1.0
+                b = cv2.filter2D(ref, -1, ker / ker.sum(), borderType=cv2.BORDER_REFLECT)[m:-m, m:-m]
+                score = float(((b - b.mean()) / (b.std() + 1e-6) * live).mean())
+                if score > best:
+                    best, best_len = score, (k if k > 1 else 0) / (kf.scale * s)
+        fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+        return best_len
+
+    def _reloc_blur(self, r: PnpResult | None, fr: _Frame) -> PnpResult | None:
+        """A relocalized pose's covariance scaled by the frame's blur read from the image against the render at
+        that pose, as _solve scales a tracked frame's by its predicted blur. A relocalizing frame has no motion to
+        go by, but a fast turn that lost the track is often still blurring the frame that re-acquires it, and
+        XFeat matches on it err far more than their scatter says (HD walk: 7-10 cm / 0.8-1.8 deg reported at a
+        predicted 0.3-0.5 cm, on frames blurred 20-25 px)."""
+        if r is None or r.cov is None or self.kf is None or not self.cfg.blur_probe_px:
+            return r
+        blur_f = self._image_blur_px(fr, self.kf) * self._base_scale(fr.camera) / r.px_factor
+        if self.cfg.blur_sigma_px > 0 and blur_f > self.cfg.blur_sigma_px:
+            r.cov = r.cov * (blur_f / self.cfg.blur_sigma_px) ** 2
+        return r
+
     def _plausible(self, r: PnpResult | None) -> bool:
         """Enough inliers at a small reprojection error, uncertainty within ``track_sigma_factor`` x the
         report gate: a pose to keep tracking from, reported only when also ``_good``."""
@@ -579,7 +623,7 @@ class RenderMatchTracker:
                 kf = self.recover_kf  # one render at the last good pose serves the whole stretch
                 if kf is None or kf.frame_camera != camera or kf.T_wc is not T_rec:
                     self.recover_kf = self._keyframe(T_rec, fr)
-                r = self._render_and_refine(fr, T_rec, self.cfg.reloc_refine_rounds, kf=self.recover_kf)
+                r = self._reloc_blur(self._render_and_refine(fr, T_rec, self.cfg.reloc_refine_rounds, kf=self.recover_kf), fr)
                 if self._good(r):
                     status = Status.RELOCALIZED
                     self.relocalizations += 1
@@ -596,7 +640,7 @@ class RenderMatchTracker:
             coarse, _ = self.db.localize(feats, camera, k=self.cfg.reloc_candidates, min_inliers=min_inl, check=0, near=near)
             fr.tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
             fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
-            r = self._render_and_refine(fr, coarse.T_wc, self.cfg.reloc_refine_rounds) if coarse is not None else None
+            r = self._reloc_blur(self._render_and_refine(fr, coarse.T_wc, self.cfg.reloc_refine_rounds) if coarse is not None else None, fr)
             if self._good(r):  # about to be reported: is there another place it fits as well? (repetitive sites)
                 t0 = time.perf_counter()
                 if self.db.has_rival(feats, camera, coarse, self.cfg.reloc_candidates, self.cfg.reloc_check, min_inl, near=near):
