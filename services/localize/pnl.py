@@ -641,7 +641,14 @@ class PnlLocalizer:
         except ValueError:
             return None
         self._local_key = None
-        return self._track(fr, T_wc, self.cfg.coarse_radius_px, tm)
+        r = self._track(fr, T_wc, self.cfg.coarse_radius_px, tm)
+        if self._plausible(r) and not r[6] and self.patches is not None and self.cfg.align:
+            # PnP from a few hundred descriptor matches starts coarse: once more from the keypoint solution,
+            # whose matches (and uncertainty) are then those of a tracked frame, which alignment may refine
+            r2 = self._track(fr, Pose(r[0].T, -r[0].T @ r[1]), self.cfg.fine_radius_px, tm)
+            if self._plausible(r2):
+                r = r2
+        return r
 
     # ---- the frame loop ---------------------------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None) -> PnlResult:
