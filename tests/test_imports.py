@@ -9,6 +9,7 @@ LIGHT = ["protocol", "services.geometry.se3", "services.geometry.camera", "servi
          "services.client", "services.client.client", "services.client.fallback", "services.client.stream",
          "services.client.cli",
          "services.localize.pnl", "services.localize.pnl_cli", "services.localize.status", "services.prebuild.stella_map",
+         "services.localize.direct", "services.prebuild.patches",
          "services.features.orb"]
 
 
