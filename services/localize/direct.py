@@ -160,11 +160,13 @@ def pose_covariance(P: np.ndarray, info: np.ndarray, K: np.ndarray, R: np.ndarra
 
 
 def align_and_solve(lp: LandmarkPatches, pidx: np.ndarray, P: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray,
-                    gray: np.ndarray, cfg: DirectConfig = DirectConfig()) -> DirectPose | None:
+                    gray: np.ndarray, cfg: DirectConfig = DirectConfig(), blur: list | None = None) -> DirectPose | None:
     """The pose from aligning the live frame (``gray``: undistorted, float32, pinhole ``K``) to the patches
     ``pidx`` of world points ``P``, starting from the world-to-camera pose (R, t). None when too few
     alignments converge or agree; a pose that has not converged after ``cfg.passes`` carries its last step
-    in its covariance (it is at least that uncertain)."""
+    in its covariance (it is at least that uncertain). ``blur``: the camera's motion during the exposure
+    as camera-frame deltas (R_d, t_d) around the frame's pose (T_cw_i = D_i T_cw): the templates are smeared
+    alike."""
     if len(P) < cfg.min_inliers:
         return None
     w = 1.0 / cfg.sigma_px ** 2
@@ -172,7 +174,8 @@ def align_and_solve(lp: LandmarkPatches, pidx: np.ndarray, P: np.ndarray, R: np.
     u0 = X0[:, :2] / X0[:, 2:3]
     out, step = None, (float("inf"), float("inf"))
     for _ in range(cfg.passes):
-        q, ok, info = align_to_patches(lp, pidx, P, R, t, K, gray)
+        poses = [(Rd @ R, Rd @ t + td) for Rd, td in blur] if blur else None
+        q, ok, info = align_to_patches(lp, pidx, P, R, t, K, gray, blur=poses)
         if ok.sum() < cfg.min_inliers:
             break
         R2, t2, inl, rmse = solve_motion_only(P[ok], q[ok], info[ok] * w, K, R, t, rounds=(4, 2))

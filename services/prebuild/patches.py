@@ -109,41 +109,13 @@ def sample_patches(img: np.ndarray, centres: np.ndarray, size: int) -> np.ndarra
     return out.reshape(n, size, size)
 
 
-def _normalise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Zero mean, unit variance per patch (rows of (N, k)); returns the patches and their std."""
-    a = a - a.mean(1, keepdims=True)
-    s = np.sqrt((a * a).mean(1, keepdims=True)) + 1e-6
-    return a / s, s[:, 0]
-
-
-def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
-                     K: np.ndarray, gray: np.ndarray, half: int = 6, iterations: int = 8, max_px: float = 6.0,
-                     min_zncc: float = 0.75) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where landmarks ``P_w`` (M, 3) with patches ``idx`` (M,) appear in the live frame.
-
-    The live camera is (``R_cw``, ``t_cw``, pinhole ``K``); ``gray`` is the undistorted live frame (float32).
-    For each landmark the
-    (2 half + 1)^2 pixel window around its projection is mapped through the landmark's tangent plane
-    into its source keyframe and sampled from the stored patch (the template, as the live camera would
-    see it); the live window is then shifted by Gauss-Newton until it matches. Returns the refined
-    pixels (M, 2), a mask of those that converged within ``max_px`` of the projection, on a patch
-    that is not an edge, with a zero-mean normalised correlation of at least ``min_zncc``, and each
-    measurement's shape of information (M, 2, 2): the patch's gradient structure scaled to trace 2, so a
-    corner weighs like an isotropic 1 px measurement and a near-edge mostly across the edge (along it the
-    alignment barely moves from where it started, and a pose solve must not be held there).
-
-    ``max_px`` must leave room for the error of the pose given: the windows converge from 4 px and more,
-    and a bound close to the pose's error keeps the windows that did not move, which pulls a pose solved
-    from them back to the pose given.
-    """
-    M = len(idx)
-    if M == 0:
-        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 2, 2))
-    k = 2 * half + 1
+def _template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, K: np.ndarray,
+              u0: np.ndarray, half: int) -> np.ndarray:
+    """The stored patches as the live camera (``R_cw``, ``t_cw``, ``K``) sees them in the (2 half + 1)^2 windows at
+    ``u0`` (M, 2): (M, k^2) float32."""
+    M, k = len(idx), 2 * half + 1
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     Xc = P_w @ R_cw.T + t_cw
-    z = np.maximum(Xc[:, 2], 1e-6)
-    u0 = np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy])
     # each window pixel's ray meets the landmark's tangent plane n.X = n.P; seen from the source keyframe
     # (X_s = A X + b, A = R_s R^T, b = t_s - A t) the plane maps live pixels to source pixels by the homography
     # H = K_s (dpl A + b n^T) K^-1, dpl = n.P (live camera coordinates)
@@ -165,13 +137,60 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
     wz = row(2)
     wz = np.where(np.abs(wz) > 1e-6, wz, 1e-6)
     us, vs = row(0) / wz, row(1) / wz
-    hs = (lp.size - 1) / 2.0  # the stored patch is centred on P's projection, which is where u0 maps
-    px = np.clip(us - us[:, half: half + 1, half: half + 1] + hs, 0, lp.size - 1)
-    py = np.clip(vs - vs[:, half: half + 1, half: half + 1] + hs, 0, lp.size - 1)
-    py = py + (np.arange(M, dtype=np.float32) * lp.size)[:, None, None]
+    # the stored patch is centred on P's projection in its source keyframe
+    Ps = np.einsum("mij,mj->mi", S[:, :, :3], P_w) + S[:, :, 3]
+    Ks = lp.K
+    ups = (Ks[0, 0] * Ps[:, 0] / Ps[:, 2] + Ks[0, 2]).astype(np.float32)[:, None, None]
+    vps = (Ks[1, 1] * Ps[:, 1] / Ps[:, 2] + Ks[1, 2]).astype(np.float32)[:, None, None]
+    hs = (lp.size - 1) / 2.0
+    px = np.clip(us - ups + hs, 0, lp.size - 1)
+    py = np.clip(vs - vps + hs, 0, lp.size - 1) + (np.arange(M, dtype=np.float32) * lp.size)[:, None, None]
     stack = lp.patches[idx].reshape(M * lp.size, lp.size).astype(np.float32)
-    tmpl = cv2.remap(stack, px.reshape(M * k, k).astype(np.float32), py.reshape(M * k, k).astype(np.float32),
+    return cv2.remap(stack, px.reshape(M * k, k).astype(np.float32), py.reshape(M * k, k).astype(np.float32),
                      cv2.INTER_LINEAR).reshape(M, k * k)
+
+
+def _normalise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Zero mean, unit variance per patch (rows of (N, k)); returns the patches and their std."""
+    a = a - a.mean(1, keepdims=True)
+    s = np.sqrt((a * a).mean(1, keepdims=True)) + 1e-6
+    return a / s, s[:, 0]
+
+
+def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
+                     K: np.ndarray, gray: np.ndarray, half: int = 6, iterations: int = 8, max_px: float = 6.0,
+                     min_zncc: float = 0.75, blur: list | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where landmarks ``P_w`` (M, 3) with patches ``idx`` (M,) appear in the live frame.
+
+    The live camera is (``R_cw``, ``t_cw``, pinhole ``K``); ``gray`` is the undistorted live frame (float32).
+    For each landmark the
+    (2 half + 1)^2 pixel window around its projection is mapped through the landmark's tangent plane
+    into its source keyframe and sampled from the stored patch (the template, as the live camera would
+    see it); the live window is then shifted by Gauss-Newton until it matches. Returns the refined
+    pixels (M, 2), a mask of those that converged within ``max_px`` of the projection, on a patch
+    that is not an edge, with a zero-mean normalised correlation of at least ``min_zncc``, and each
+    measurement's shape of information (M, 2, 2): the patch's gradient structure scaled to trace 2, so a
+    corner weighs like an isotropic 1 px measurement and a near-edge mostly across the edge (along it the
+    alignment barely moves from where it started, and a pose solve must not be held there).
+
+    ``blur``: more world-to-camera poses (R, t) the camera passed through during the exposure; each template
+    is then the mean of the patch seen from all of them in the same window (a moving frame's smear).
+
+    ``max_px`` must leave room for the error of the pose given: the windows converge from 4 px and more,
+    and a bound close to the pose's error keeps the windows that did not move, which pulls a pose solved
+    from them back to the pose given.
+    """
+    M = len(idx)
+    if M == 0:
+        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 2, 2))
+    k = 2 * half + 1
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    Xc = P_w @ R_cw.T + t_cw
+    z = np.maximum(Xc[:, 2], 1e-6)
+    u0 = np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy])
+    tmpl = _template(lp, idx, P_w, R_cw, t_cw, K, u0, half)
+    if blur:  # the frame moved during the exposure: the mean of the views from each pose, in the same window
+        tmpl = (tmpl + sum(_template(lp, idx, P_w, R_cw_i, t_cw_i, K, u0, half) for R_cw_i, t_cw_i in blur)) / (1 + len(blur))
     T, _ = _normalise(tmpl)
     d = np.zeros((M, 2), np.float32)
     ok = np.ones(M, bool)
