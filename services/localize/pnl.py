@@ -38,7 +38,7 @@ as Render & Match) come from this solution.
   from keypoint solutions within 3x the gates (from further, the windows settle on self-consistent wrong
   poses).
 
-Office walk, one core: 264/300 frames at 0.59 cm / 0.064 deg in ~9 ms per tracked frame; keypoints alone
+Office walk, one core: 253-264/300 frames at 0.60 cm / 0.06 deg in ~9 ms per tracked frame; keypoints alone
 gave 1.7 cm / 0.23 deg over 197 frames in ~18 ms.
 
 With no pose (first frame, after LOST) the frame relocalizes against the map itself: each keypoint's
