@@ -69,7 +69,12 @@ def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
     est = read_tum(traj_path)
     assert len(est) >= 7 and s["localized"] == len(est)  # the first frame relocalizes with no prior
     a = compute_ape(seq.groundtruth, est, "none")
-    print("APE", len(est), a.trans_rmse, a.rot_rmse_deg); assert a.trans_rmse < 0.05 and a.rot_rmse_deg < 1.0, (a.trans_rmse, a.rot_rmse_deg)
+    # patch alignment: 0.3-0.4 cm / 0.06-0.07 deg here (ORB keypoints alone: 2.9 cm / 0.38 deg)
+    assert a.trans_rmse < 0.015 and a.rot_rmse_deg < 0.25, (a.trans_rmse, a.rot_rmse_deg)
+    assert s.get("direct_ms", 0) > 0  # direct tracking by default; --no-direct: ORB on every frame
+    r = _cli("localize", mapdir, out / "seq", "--method", "pnl", "--map", mapdir, "--out", traj_path, "--no-direct")
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert r.returncode == 0 and "direct_ms" not in s and s["localized"] >= 7, r.stdout + r.stderr
 
 
 def test_localize_pnl_without_map_is_a_clear_error(tmp_path):

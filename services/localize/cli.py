@@ -64,6 +64,9 @@ def register(sub) -> None:
     p.add_argument("--no-align", action="store_true",
                    help="(--method pnl) skip the landmark-patch alignment and direct tracking: keypoints only, as for a map "
                         "without patches (office: 2.3 cm / 0.34 deg at 18 ms a frame, against 0.6 cm / 0.06 deg at 9 ms)")
+    p.add_argument("--no-direct", action="store_true",
+                   help="track with features on every frame (XFeat for rm, ORB then patch alignment for pnl) instead of "
+                        "aligning the frame to patches straight from the prediction first: slower; for comparisons")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="(--method rm) the same for the camera centre, in centimetres (default 1)")
     p.set_defaults(func=run_localize)
@@ -136,6 +139,7 @@ def run_localize(args) -> int:
     scan = load_scan(args.scan)
     renderer = Renderer(scan, device=args.device)
     max_side = args.max_side if args.max_side else (None if renderer.device.type == "cuda" else 480)
-    cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100)
+    cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
+                   direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points)
     tracker = RenderMatchTracker(renderer, XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side), db, cfg)
     return localize_and_report(tracker, seq, args, args.method, stamped=True)

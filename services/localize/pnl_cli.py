@@ -24,7 +24,8 @@ def run_localize_pnl(args) -> int:
 
         cv2.setNumThreads(int(args.threads))  # -j 1: the one-core figure of benchmarks/RESULTS.md
     seq = open_sequence(args.sequence)
-    loc = PnlLocalizer.load(map_dir, PnlConfig(align=not getattr(args, "no_align", False)))
+    loc = PnlLocalizer.load(map_dir, PnlConfig(align=not getattr(args, "no_align", False),
+                                               direct_landmarks=0 if getattr(args, "no_direct", False) else PnlConfig().direct_landmarks))
     if loc.patches is None:
         log.info("%s has no landmark patches (a map from before them, or from stella_vslam): keypoint measurements only", map_dir)
     return localize_and_report(loc, seq, args, "pnl")
