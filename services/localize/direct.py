@@ -21,7 +21,8 @@ import numpy as np
 from services.geometry.se3 import Pose
 from services.prebuild.patches import LandmarkPatches, align_to_patches
 
-__all__ = ["DirectConfig", "DirectPose", "solve_motion_only", "pose_covariance", "cov_sigmas", "align_and_solve"]
+__all__ = ["DirectConfig", "DirectPose", "solve_motion_only", "pose_covariance", "cov_sigmas", "align_and_solve",
+           "undistorted_gray"]
 
 CHI2_2DOF = 5.991
 
@@ -63,6 +64,20 @@ class DirectPose:
         (translation, rotation) in camera axes (T_wc exp(delta) = (exp(dx) T_cw)^-1: delta = -dx, reordered)."""
         o = [3, 4, 5, 0, 1, 2]
         return self.cov[np.ix_(o, o)]
+
+
+def undistorted_gray(image: np.ndarray, camera, cache: dict) -> np.ndarray:
+    """``image`` (grey or BGR) in grey, undistorted to ``camera``'s pinhole intrinsics, float32 (what
+    :func:`align_and_solve` aligns to). ``cache`` keeps the undistortion maps of the last camera."""
+    g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if camera.is_distorted:
+        key = (camera.width, camera.height, tuple(camera.K.ravel().tolist()), tuple(np.ravel(camera.dist).tolist()))
+        if key not in cache:
+            cache.clear()
+            cache[key] = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K, (camera.width, camera.height),
+                                                     cv2.CV_32FC1)
+        g = cv2.remap(g, *cache[key], cv2.INTER_LINEAR)
+    return g.astype(np.float32)
 
 
 def cov_sigmas(C: np.ndarray) -> tuple[float, float]:
@@ -191,7 +206,8 @@ def align_and_solve(lp: LandmarkPatches, pidx: np.ndarray, P: np.ndarray, R: np.
         R, t = R2, t2
         cov = pose_covariance(P[ok][inl], info[ok][inl] * w, K, R, t, rmse, cfg.rmse_floor)
         out = DirectPose(R, t, int(inl.sum()), rmse, cov, False)
-        if step[0] <= 0.5 * out.sigma_m and step[1] <= 0.5 * out.sigma_deg:
+        sigma_m, sigma_deg = cov_sigmas(cov)
+        if step[0] <= 0.5 * sigma_m and step[1] <= 0.5 * sigma_deg:
             out.converged = True
             return out
     if out is not None:  # not converged: at least as uncertain as the last step (isotropically, in both blocks)

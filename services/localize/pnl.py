@@ -64,7 +64,8 @@ from services.geometry.blur import blur_length_px
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 from services.localize.status import Status
-from services.localize.direct import DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only
+from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only,
+                                     undistorted_gray)
 from services.prebuild.patches import PATCH_FILE, LandmarkPatches, corner_scores, map_fingerprint
 from services.prebuild.stella_map import StellaMap, read_map
 
@@ -579,18 +580,8 @@ class PnlLocalizer:
 
     def _gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey (float32), undistorted like its keypoints; computed once per frame."""
-        if fr.gray is not None:
-            return fr.gray
-        img = fr.image
-        g = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-        cam = fr.camera
-        if cam is not None and cam.is_distorted:
-            key = (cam.width, cam.height, tuple(cam.dist.ravel().tolist()), tuple(cam.K.ravel().tolist()))
-            if key not in self._undistort:
-                self._undistort = {key: cv2.initUndistortRectifyMap(cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1)}
-            mx, my = self._undistort[key]
-            g = cv2.remap(g, mx, my, cv2.INTER_LINEAR)
-        fr.gray = g.astype(np.float32)
+        if fr.gray is None:
+            fr.gray = undistorted_gray(fr.image, fr.camera, self._undistort)
         return fr.gray
 
     def _plausible(self, r) -> bool:

@@ -57,7 +57,7 @@ from services.geometry.blur import blur_length_px, motion_blur_linear
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
-from services.localize.direct import DirectConfig, align_and_solve
+from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
 from services.render.depth_sampling import plane_normals, support_fraction
@@ -352,9 +352,7 @@ class RenderMatchTracker:
                 r.px_factor = px_factor
                 r.px_deg = float(np.degrees(1.0 / max(fr.camera.fx, fr.camera.fy)))
                 # the blur as the matched features see it (live frame at kf.scale = base scale / px_factor)
-                blur = self._blur_px(fr, self._exposure(fr)) * self._base_scale(fr.camera) / px_factor
-                if self.cfg.blur_sigma_px > 0 and blur > self.cfg.blur_sigma_px and r.cov is not None:
-                    r.cov = r.cov * (blur / self.cfg.blur_sigma_px) ** 2
+                r.cov = self._blur_scaled(r.cov, self._blur_px(fr, self._exposure(fr)) * self._base_scale(fr.camera) / px_factor)
         fr.tm["match_ms"] = fr.tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
         fr.tm["pose_ms"] = fr.tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
         return r
@@ -433,15 +431,7 @@ class RenderMatchTracker:
     def _undistorted_gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey at full resolution, undistorted (float32), once per frame."""
         if "undistorted" not in fr.gray:
-            img = fr.image
-            g = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-            cam = fr.camera
-            if cam.is_distorted:
-                key = (cam.width, cam.height, tuple(cam.K.ravel().tolist()), tuple(np.ravel(cam.dist).tolist()))
-                if key not in self._undistort:
-                    self._undistort = {key: cv2.initUndistortRectifyMap(cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1)}
-                g = cv2.remap(g, *self._undistort[key], cv2.INTER_LINEAR)
-            fr.gray["undistorted"] = g.astype(np.float32)
+            fr.gray["undistorted"] = undistorted_gray(fr.image, fr.camera, self._undistort)
         return fr.gray["undistorted"]
 
     def _direct(self, kf: Keyframe, fr: _Frame, T_pred: Pose) -> PnpResult | None:
@@ -463,19 +453,22 @@ class RenderMatchTracker:
         u, v = cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy
         m = 12 * cam.width / 640
         vis = np.flatnonzero((Xc[:, 2] > 0.1) & (u >= m) & (u < cam.width - 1 - m) & (v >= m) & (v < cam.height - 1 - m))
-        d = None
+        d, dc = None, DirectConfig(min_inliers=self.cfg.min_inliers)
         if len(vis) >= self.cfg.min_inliers:
-            d = align_and_solve(lp, vis, P[vis], T_cw.R, T_cw.t, cam.K, self._undistorted_gray(fr),
-                                DirectConfig(min_inliers=self.cfg.min_inliers))
+            d = align_and_solve(lp, vis, P[vis], T_cw.R, T_cw.t, cam.K, self._undistorted_gray(fr), dc)
         fr.tm["direct_ms"] = fr.tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         if d is None:
             return None
-        cov = d.cov_right_wc()
-        blur_f = blur * self._base_scale(cam)  # as XFeat would see it: the same scaling as its matches get (_solve)
-        if self.cfg.blur_sigma_px > 0 and blur_f > self.cfg.blur_sigma_px:
-            cov = cov * (blur_f / self.cfg.blur_sigma_px) ** 2
-        return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * DirectConfig().sigma_px, 0, cov, 1.0,
+        cov = self._blur_scaled(d.cov_right_wc(), blur * self._base_scale(cam))  # as XFeat's matches (_solve)
+        return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * dc.sigma_px, 0, cov, 1.0,
                          float(np.degrees(1.0 / max(cam.fx, cam.fy))))
+
+    def _blur_scaled(self, cov: np.ndarray | None, blur_px: float) -> np.ndarray | None:
+        """A pose covariance scaled by (blur / blur_sigma_px)^2 when the frame is blurred more than blur_sigma_px
+        (``blur_px`` as the features see it: pixels at the base resolution)."""
+        if cov is None or self.cfg.blur_sigma_px <= 0 or blur_px <= self.cfg.blur_sigma_px:
+            return cov
+        return cov * (blur_px / self.cfg.blur_sigma_px) ** 2
 
     def _image_blur_px(self, fr: _Frame, kf: Keyframe) -> float:
         """The frame's motion blur (frame pixels) read from the image: the length of the line kernel (over four
@@ -514,9 +507,7 @@ class RenderMatchTracker:
         predicted 0.3-0.5 cm, on frames blurred 20-25 px)."""
         if r is None or r.cov is None or self.kf is None or not self.cfg.blur_probe_px:
             return r
-        blur_f = self._image_blur_px(fr, self.kf) * self._base_scale(fr.camera) / r.px_factor
-        if self.cfg.blur_sigma_px > 0 and blur_f > self.cfg.blur_sigma_px:
-            r.cov = r.cov * (blur_f / self.cfg.blur_sigma_px) ** 2
+        r.cov = self._blur_scaled(r.cov, self._image_blur_px(fr, self.kf) * self._base_scale(fr.camera) / r.px_factor)
         return r
 
     def _plausible(self, r: PnpResult | None) -> bool:
