@@ -82,9 +82,19 @@ class RMConfig:
     max_holes: float = 0.35  # a keyframe render with more pixels than this beyond depth_radius of any point is redone at half resolution ...
     coarse_levels: int = 2  # ... at most this many times (sparse scans, far surfaces, views through windows)
     reloc_candidates: int = 8
-    reloc_min_inliers: int = 30  # a database match needs this many (false poses from a wrong view reach 10-40 inliers)
+    reloc_min_inliers: int = 30  # a database view's coarse pose needs this many inliers to be verified (rendered at and
+    #                              matched again; false poses from a wrong view reach 10-40) ...
+    reloc_weak_inliers: int = 12  # ... or this many while the camera cannot be further than reloc_weak_reach_m from where
+    reloc_weak_reach_m: float = 1.0  # its last velocity leads (a close-up after a whip pan shares 12-25 with a view 1 m off;
+    #                                  a weak pose elsewhere was an identical rack bay 2-4 m on, which verification confirms)
+    reloc_verify: int = 2  # verify at most this many places per frame (the best-matching first) ...
+    reloc_rival_verify: float = 0.5  # ... and, once one passed, the next when it has this fraction of its coarse inliers:
+    #                                  two verified places are a repetitive site (identical rack bays 2 m apart)
+    reloc_ambiguity: float = 0.8  # another place with this fraction of the best's inliers makes a relocalization ambiguous
     max_speed_mps: float = 3.0  # a relocalization within anchor_s of the last reported pose searches only views this
     anchor_s: float = 30.0  # ... fast a camera could have got to (+1 m): no jumping to an identical aisle 40 m away
+    max_accel_mps2: float = 3.0  # ... and, when its velocity then is known, accepts only a pose this close to where that
+    reach_m: float = 0.3  # ... velocity leads (+ this): not the identical rack bay 2 m on (0.6 m after 0.4 s, 1.5 m after 0.9 s)
     reloc_check: int = 32  # a relocalization is refused when views ranked up to this hold a rival place
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
@@ -104,9 +114,16 @@ class RMConfig:
     lk_max_px: float = 2.0  # a match whose patch lands further than this from its keypoint keeps the keypoint
     direct_points: int = 150  # tracking first aligns the frame to this many corner patches of the keyframe render
     #                           from the prediction (no XFeat on the frame); 0 = off (see _direct)
+    direct_min_inliers: int = 60  # a direct pose needs this many aligned patches, else features decide (with 40-45 of
+    #                              150 it slid 1-5 cm over 4 frames at a predicted 0.6 cm, office seed 2)
+    match_sigma_scale: float = 1.0  # XFeat poses' covariance x this^2: against ground truth their errors run ~2 sigma (direct
+    #                                 poses' ~1); 2 halves the RMSE on office seeds 2-3 but reports a quarter fewer frames
+    direct_blur_power: float = 1.0  # a direct pose's covariance grows as (blur / blur_sigma_px)^this (XFeat's: ^2)
     direct_min_corner: float = 0.2  # those patches' corner score (0 edge or flat .. 0.5 isotropic corner)
     blur_probe_px: tuple[float, ...] = (0, 4, 8, 12, 16, 24, 32, 48)  # blur lengths (px at 640 wide) tried on the render
     #                                     at a relocalized pose to read the frame's blur from the image; () = off
+    blur_probe_gain: float = 0.05  # ... the best length counts when it removes this share of the sharp render's misfit
+    #                                (1 - correlation); a smaller gain is render noise smoothed away
 
 
 @dataclass
@@ -216,7 +233,8 @@ class RenderMatchTracker:
         """Forget the track (the next frame relocalizes from the database)."""
         self._lose()
         self.recent: tuple[Pose, float | None] | None = None  # last good pose and its stamp, kept while LOST
-        self.anchor: tuple[Pose, float] | None = None  # last reported pose with a stamp: where the camera can be now
+        self.anchor: tuple[Pose, float, np.ndarray | None] | None = None  # last reported pose, its stamp and the
+        #                                                                   camera's world velocity then (if tracked)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.lost_frames = 0
 
@@ -353,6 +371,8 @@ class RenderMatchTracker:
                 r.px_deg = float(np.degrees(1.0 / max(fr.camera.fx, fr.camera.fy)))
                 # the blur as the matched features see it (live frame at kf.scale = base scale / px_factor)
                 r.cov = self._blur_scaled(r.cov, self._blur_px(fr, self._exposure(fr)) * self._base_scale(fr.camera) / px_factor)
+                if r.cov is not None:
+                    r.cov = r.cov * self.cfg.match_sigma_scale ** 2
         fr.tm["match_ms"] = fr.tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
         fr.tm["pose_ms"] = fr.tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
         return r
@@ -453,27 +473,35 @@ class RenderMatchTracker:
         u, v = cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy
         m = 12 * cam.width / 640
         vis = np.flatnonzero((Xc[:, 2] > 0.1) & (u >= m) & (u < cam.width - 1 - m) & (v >= m) & (v < cam.height - 1 - m))
-        d, dc = None, DirectConfig(min_inliers=self.cfg.min_inliers)
-        if len(vis) >= self.cfg.min_inliers:
+        need = max(self.cfg.min_inliers, self.cfg.direct_min_inliers)
+        d, dc = None, DirectConfig(min_inliers=need)
+        if len(vis) >= need:
             d = align_and_solve(lp, vis, P[vis], T_cw.R, T_cw.t, cam.K, self._undistorted_gray(fr), dc)
         fr.tm["direct_ms"] = fr.tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         if d is None:
             return None
-        cov = self._blur_scaled(d.cov_right_wc(), blur * self._base_scale(cam))  # as XFeat's matches (_solve)
+        # blurred templates model the blur, so its cost grows slower than for XFeat's matches (_solve): sigma x
+        # sqrt(blur / blur_sigma_px), not x blur / blur_sigma_px (against ground truth, linear: errors 0.2-0.4 sigma
+        # at 16-24 px, none: 2 sigma)
+        cov = self._blur_scaled(d.cov_right_wc(), blur * self._base_scale(cam), power=self.cfg.direct_blur_power)
         return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * dc.sigma_px, 0, cov, 1.0,
                          float(np.degrees(1.0 / max(cam.fx, cam.fy))))
 
-    def _blur_scaled(self, cov: np.ndarray | None, blur_px: float) -> np.ndarray | None:
-        """A pose covariance scaled by (blur / blur_sigma_px)^2 when the frame is blurred more than blur_sigma_px
+    def _blur_scaled(self, cov: np.ndarray | None, blur_px: float, power: float = 2.0) -> np.ndarray | None:
+        """A pose covariance scaled by (blur / blur_sigma_px)^power when the frame is blurred more than blur_sigma_px
         (``blur_px`` as the features see it: pixels at the base resolution)."""
         if cov is None or self.cfg.blur_sigma_px <= 0 or blur_px <= self.cfg.blur_sigma_px:
             return cov
-        return cov * (blur_px / self.cfg.blur_sigma_px) ** 2
+        return cov * (blur_px / self.cfg.blur_sigma_px) ** power
 
     def _image_blur_px(self, fr: _Frame, kf: Keyframe) -> float:
-        """The frame's motion blur (frame pixels) read from the image: the length of the line kernel (over four
-        directions) that, blurring the keyframe render, correlates best with the frame (both as the camera
-        sees them, distortion included; at <= 320 px wide)."""
+        """The frame's motion blur (frame pixels) read from the image (see ``_image_blur``)."""
+        return self._image_blur(fr, kf)[0]
+
+    def _image_blur(self, fr: _Frame, kf: Keyframe) -> tuple[float, float]:
+        """The frame's motion blur read from the image: the length (frame pixels) and direction (degrees from
+        the image x axis) of the line kernel (over four directions) that, blurring the keyframe render,
+        correlates best with the frame (both as the camera sees them, distortion included; at <= 320 px wide)."""
         t0 = time.perf_counter()
         ref = cv2.cvtColor(kf.render.rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
         s = min(1.0, 320 / ref.shape[1])  # blur lengths are long, detail is not needed
@@ -484,7 +512,7 @@ class RenderMatchTracker:
         m = max(4, w // 16)
         live = live[m:-m, m:-m]
         live = (live - live.mean()) / (live.std() + 1e-6)
-        best, best_len = -np.inf, 0.0
+        scores: dict[tuple[int, float], float] = {}
         for length in self.cfg.blur_probe_px:
             k = max(1, int(round(length * w / 640)))
             for ang in ([0.0] if k == 1 else [0.0, 45.0, 90.0, 135.0]):
@@ -493,21 +521,46 @@ class RenderMatchTracker:
                 for j in range(k):  # a line through the centre at this angle
                     ker[int(round(c + (j - c) * np.sin(np.radians(ang)))), int(round(c + (j - c) * np.cos(np.radians(ang))))] = 1.0
                 b = cv2.filter2D(ref, -1, ker / ker.sum(), borderType=cv2.BORDER_REFLECT)[m:-m, m:-m]
-                score = float(((b - b.mean()) / (b.std() + 1e-6) * live).mean())
-                if score > best:
-                    best, best_len = score, (k if k > 1 else 0) / (kf.scale * s)
+                scores[(k, ang)] = float(((b - b.mean()) / (b.std() + 1e-6) * live).mean())
         fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
-        return best_len
+        sharp = scores.get((1, 0.0), -1.0)
+        (k, ang), best = max(scores.items(), key=lambda kv: kv[1])
+        across = scores.get((k, (ang + 90.0) % 180.0), best)
+        # Smoothing of any kind helps a little where the render is noisier than the frame (sparse scans seen close
+        # up). A blur counts only when it explains a real share of what the sharp render leaves unexplained, and
+        # when it is one: smearing along its direction must fit clearly better than across it.
+        gain = best - sharp
+        if k == 1 or gain < self.cfg.blur_probe_gain * (1.0 - sharp) or best - across < 0.5 * gain:
+            return 0.0, 0.0
+        return k / (kf.scale * s), ang
 
     def _reloc_blur(self, r: PnpResult | None, fr: _Frame) -> PnpResult | None:
         """A relocalized pose's covariance scaled by the frame's blur read from the image against the render at
         that pose, as _solve scales a tracked frame's by its predicted blur. A relocalizing frame has no motion to
         go by, but a fast turn that lost the track is often still blurring the frame that re-acquires it, and
         XFeat matches on it err far more than their scatter says (HD walk: 7-10 cm / 0.8-1.8 deg reported at a
-        predicted 0.3-0.5 cm, on frames blurred 20-25 px)."""
+        predicted 0.3-0.5 cm, on frames blurred 20-25 px).
+
+        When the blur is long enough to blur renders for (``blur_min_px``), the frame is matched again against
+        the render blurred along it, as a tracked frame is against its predicted blur: a sharp render shares
+        few features with a smeared frame (a cold frame of a whip pan: 124 inliers against the sharp render
+        at 0.12 deg after scaling; the blurred render serves tracked frames of the same turn with twice as
+        many). The blur is modelled as a rotation about the axis perpendicular to it (fast turns are)."""
         if r is None or r.cov is None or self.kf is None or not self.cfg.blur_probe_px:
             return r
-        r.cov = self._blur_scaled(r.cov, self._image_blur_px(fr, self.kf) * self._base_scale(fr.camera) / r.px_factor)
+        length, angle = self._image_blur(fr, self.kf)
+        if length >= self.cfg.blur_min_px:
+            a = np.radians(angle)
+            turn = Pose.from_rotvec_t(np.array([-np.sin(a), np.cos(a), 0.0]) * length / fr.camera.fx, np.zeros(3))
+            saved = fr.motion, fr.exposure_s
+            fr.motion, fr.exposure_s = (turn, 1.0), 1.0  # the blur as one frame interval's motion, all exposed
+            try:
+                r2 = self._match(self.kf, fr, r.T_wc)  # its covariance scaled by this blur
+            finally:
+                fr.motion, fr.exposure_s = saved
+            if self._good(r2) and r2.n_inliers > r.n_inliers:
+                return r2
+        r.cov = self._blur_scaled(r.cov, length * self._base_scale(fr.camera) / r.px_factor)
         return r
 
     def _plausible(self, r: PnpResult | None) -> bool:
@@ -549,6 +602,54 @@ class RenderMatchTracker:
                 break
             T = r.T_wc
         return r
+
+    def _relocalize(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
+                    reach: tuple[np.ndarray, float] | None = None) -> PnpResult | None:
+        """A pose from the database, verified: coarse poses from the best-matching views (one per place), each
+        rendered at and matched again until one passes the report gate; refused when two places fit the
+        frame about as well (repetitive sites), coarsely or verified. ``near`` = (recent position, radius): search
+        only views within reach of it; ``reach`` = (position, radius), else ``near``: refuse a pose beyond it
+        (a bay of identical racks 2-4 m on)."""
+        cfg = self.cfg
+        feats = self._live(fr, self._base_scale(fr.camera))
+        t0 = time.perf_counter()
+        reach = reach or near
+        # a weak coarse pose is verified only where the camera cannot have reached a look-alike place
+        need = cfg.reloc_weak_inliers if reach is not None and reach[1] <= cfg.reloc_weak_reach_m else cfg.reloc_min_inliers
+        floor = min(need, int(cfg.reloc_ambiguity * cfg.reloc_min_inliers))  # rivals may be weaker than the best
+        within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
+        hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
+        fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+        fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
+        if not hyps or hyps[0][0].n_inliers < need:
+            return None
+        if len(hyps) > 1 and hyps[1][0].n_inliers >= cfg.reloc_ambiguity * hyps[0][0].n_inliers:
+            log.info("relocalization ambiguous: %d and %d inliers at places %.1f m apart", hyps[0][0].n_inliers,
+                     hyps[1][0].n_inliers, hyps[0][0].T_wc.distance_to(hyps[1][0].T_wc)[0])
+            return None
+        found: tuple[PnpResult, PnpResult, Keyframe] | None = None  # (coarse, verified, its keyframe)
+        for coarse, _ in hyps[:cfg.reloc_verify]:
+            if found is not None and coarse.n_inliers < cfg.reloc_rival_verify * found[0].n_inliers:
+                break
+            r = self._reloc_blur(self._render_and_refine(fr, coarse.T_wc, cfg.reloc_refine_rounds), fr)
+            if not self._good(r):
+                continue
+            if reach is not None and np.linalg.norm(r.T_wc.t - reach[0]) > reach[1]:
+                log.info("relocalization %.1f m from where the camera can be, beyond reach (%.1f m)",
+                         np.linalg.norm(r.T_wc.t - reach[0]), reach[1])
+                continue
+            if found is not None:  # a second place passes too: a repetitive site (rack bays, office floors)
+                log.info("relocalization ambiguous: verified at places %.1f m apart", found[1].T_wc.distance_to(r.T_wc)[0])
+                return None
+            found = (coarse, r, self.kf)
+        if found is None:
+            return None
+        coarse, r, self.kf = found
+        t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
+        rival = self.db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, cfg.reloc_check,
+                                  ambiguity=cfg.reloc_ambiguity, near=near, within=within)
+        fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
+        return None if rival else r
 
     # ---- the frame loop --------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, stamp: float | None = None,
@@ -622,21 +723,17 @@ class RenderMatchTracker:
             else:
                 self.recent = None
         if not self._plausible(r) and self.db is not None:
-            feats = self._live(fr, self._base_scale(camera))
-            t0 = time.perf_counter()
-            min_inl = self.cfg.reloc_min_inliers
-            near = None
+            near = reach = None
             if self.anchor is not None and stamp is not None and 0 <= stamp - self.anchor[1] <= self.cfg.anchor_s:
-                near = (self.anchor[0].t, 1.0 + self.cfg.max_speed_mps * (stamp - self.anchor[1]))
-            coarse, _ = self.db.localize(feats, camera, k=self.cfg.reloc_candidates, min_inliers=min_inl, check=0, near=near)
-            fr.tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
-            fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
-            r = self._reloc_blur(self._render_and_refine(fr, coarse.T_wc, self.cfg.reloc_refine_rounds) if coarse is not None else None, fr)
-            if self._good(r):  # about to be reported: is there another place it fits as well? (repetitive sites)
-                t0 = time.perf_counter()
-                if self.db.has_rival(feats, camera, coarse, self.cfg.reloc_candidates, self.cfg.reloc_check, min_inl, near=near):
-                    r = None
-                fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
+                T_a, s_a, v_a = self.anchor
+                dt = stamp - s_a
+                near = (T_a.t, 1.0 + self.cfg.max_speed_mps * dt)
+                reach = near
+                if v_a is not None:  # it kept moving about as it did: at most max_accel away from that
+                    tight = self.cfg.reach_m + 0.5 * self.cfg.max_accel_mps2 * dt * dt
+                    if tight < near[1]:
+                        reach = (T_a.t + v_a * dt, tight)
+            r = self._relocalize(fr, near, reach)
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1
@@ -657,9 +754,13 @@ class RenderMatchTracker:
             self.motion = (self.recent[0].inverse() @ r.T_wc, stamp - self.recent[1])
         else:
             self.motion = None
+        T_prev = self.T_last
         self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
         good = self._good(r)  # else weakly constrained: no pose reported, but tracking continues from it
         if good and stamp is not None:
-            self.anchor = (r.T_wc, stamp)
+            v = None  # world velocity, from this frame's tracked motion
+            if self.motion is not None and status == Status.TRACKING and consecutive:
+                v = (r.T_wc.t - T_prev.t) / self.motion[1]
+            self.anchor = (r.T_wc, stamp, v)
         return FrameResult(status if good else Status.LOST, r.T_wc if good else None, r.n_inliers, r.reproj_rmse_px,
                            rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, self._blur_px(fr, self._exposure(fr)))

@@ -82,15 +82,20 @@ class RelocDB:
     # ---- query -------------------------------------------------------------
     def candidates(self, feats: Features, k: int = 8, near: tuple[np.ndarray, float] | None = None) -> np.ndarray:
         """The ``k`` views whose global descriptor is most similar to the query's; with ``near`` =
-        (world position, radius m), only among the views rendered within that radius of it."""
+        (world position, radius m), only among the views rendered within that radius of it, plus the
+        faces at the database position nearest to it."""
         q = _vlad(feats.desc, self.vocab)
         sim = self.vlad @ q
         order = np.argsort(-sim)
-        if near is not None:
-            centre, radius = near
-            inside = np.linalg.norm(self.view_poses[:, :3] - np.asarray(centre, float), axis=1) <= radius
-            order = order[inside[order]]
-        return order[:k]
+        if near is None:
+            return order[:k]
+        centre, radius = near
+        dist = np.linalg.norm(self.view_poses[:, :3] - np.asarray(centre, float), axis=1)
+        order = order[dist[order] <= radius][:k]
+        # and every face at the position nearest the recent pose: a camera that was tracked a moment ago is
+        # still close to it, where a global descriptor ranks a close-up view poorly (whip pans onto racks)
+        nearest = np.flatnonzero(np.isclose(dist, dist.min(), atol=1e-3))
+        return np.concatenate([nearest[~np.isin(nearest, order)], order])
 
     def _solve_views(self, feats: Features, camera: Camera, views, min_inliers: int,
                      max_error_px: float) -> list[tuple[PnpResult, int]]:
@@ -128,23 +133,43 @@ class RelocDB:
             return None, -1
         return best, best_view
 
+    def hypotheses(self, feats: Features, camera: Camera, k: int = 8, min_inliers: int = 12, max_error_px: float = 3.0,
+                   near: tuple[np.ndarray, float] | None = None,
+                   within: tuple[np.ndarray, float] | None = None) -> list[tuple[PnpResult, int]]:
+        """Coarse poses from the top-``k`` views with at least ``min_inliers`` inliers, the best per place
+        (places differ by more than 1 m or 20 degrees), best first, each with its view.
+
+        For callers that verify a pose before trusting it (Render & Match renders at it and matches
+        again): a view a metre from a close-up camera shares few features with it (12-25 inliers, yet
+        within 5 cm / 2 degrees), where ``localize`` needs 30 to trust a pose it cannot check.
+        ``within`` = (position, radius): poses further from it are not hypotheses (the camera cannot be there)."""
+        order = self.candidates(feats, k, near)
+        results = sorted(_inside(self._solve_views(feats, camera, order, min_inliers, max_error_px), within),
+                         key=lambda rv: -rv[0].n_inliers)
+        places: list[tuple[PnpResult, int]] = []
+        for r, v in results:
+            if all(_distinct(r.T_wc, p.T_wc) for p, _ in places):
+                places.append((r, v))
+        return places
+
     def has_rival(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
                   min_inliers: int = 30, max_error_px: float = 3.0, ambiguity: float = 0.8,
-                  near: tuple[np.ndarray, float] | None = None) -> bool:
+                  near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None) -> bool:
         """Whether views ranked ``skip``..``check`` for this query hold another place that fits it about as
         well as ``best``. In the simulated warehouse the true aisle ranked outside the top 8 twice, and a
         wrong aisle 24-30 m away was accepted and then confirmed by its own render; the top 32 held a rival
         both times. Callers that refine the coarse pose first (Render & Match) ask only once it passed,
-        so a LOST stretch does not pay for it on every frame."""
+        so a LOST stretch does not pay for it on every frame. ``within``: as for ``hypotheses``, a place where
+        the camera cannot be is no rival."""
         order = self.candidates(feats, check, near)[skip:]
         floor = max(6, int(ambiguity * best.n_inliers))  # weaker solutions cannot be rivals
-        return self._rival_in(best, -1, self._solve_views(feats, camera, order, floor, max_error_px), ambiguity)
+        return self._rival_in(best, -1, _inside(self._solve_views(feats, camera, order, floor, max_error_px), within), ambiguity)
 
     @staticmethod
     def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float) -> bool:
         for r, v in others:
-            dt, dr = best.T_wc.distance_to(r.T_wc)
-            if (dt > 1.0 or dr > 20.0) and r.n_inliers >= ambiguity * best.n_inliers:
+            if _distinct(best.T_wc, r.T_wc) and r.n_inliers >= ambiguity * best.n_inliers:
+                dt, dr = best.T_wc.distance_to(r.T_wc)
                 log.info("relocalization ambiguous: %d inliers at view %d and %d at view %d, %.1f m / %.0f deg apart",
                          best.n_inliers, best_view, r.n_inliers, v, dt, dr)
                 return True
@@ -171,6 +196,19 @@ class RelocDB:
                            z["vlad"].astype(np.float32), z["vocab"], meta)
         except (OSError, KeyError, json.JSONDecodeError) as e:
             raise ValueError(f"{path}: not a relocalization database ({e})") from None
+
+
+def _inside(results: list[tuple[PnpResult, int]], within: tuple[np.ndarray, float] | None) -> list[tuple[PnpResult, int]]:
+    if within is None:
+        return results
+    centre, radius = within
+    return [(r, v) for r, v in results if np.linalg.norm(r.T_wc.t - np.asarray(centre, float)) <= radius]
+
+
+def _distinct(a: Pose, b: Pose) -> bool:
+    """Two poses at different places (more than 1 m or 20 degrees apart), not two estimates of one."""
+    dt, dr = a.distance_to(b)
+    return dt > 1.0 or dr > 20.0
 
 
 def build_database(renderer, positions: np.ndarray, extractor: XFeatExtractor, cfg: DBConfig = DBConfig(),
