@@ -91,11 +91,14 @@ class RMConfig:
     reloc_rival_verify: float = 0.5  # ... and, once one passed, the next when it has this fraction of its coarse inliers:
     #                                  two verified places are a repetitive site (identical rack bays 2 m apart)
     reloc_ambiguity: float = 0.8  # another place with this fraction of the best's inliers makes a relocalization ambiguous
+    reloc_rivals_rendered: int = 3  # rival places with reloc_rival_verify x the coarse inliers rendered at and matched
     max_speed_mps: float = 3.0  # a relocalization within anchor_s of the last reported pose searches only views this
     anchor_s: float = 30.0  # ... fast a camera could have got to (+1 m): no jumping to an identical aisle 40 m away
     max_accel_mps2: float = 3.0  # ... and, when its velocity then is known, accepts only a pose this close to where that
     reach_m: float = 0.3  # ... velocity leads (+ this): not the identical rack bay 2 m on (0.6 m after 0.4 s, 1.5 m after 0.9 s)
-    reloc_check: int = 32  # a relocalization is refused when views ranked up to this hold a rival place
+    reloc_check: int = 32  # a relocalization is refused when views ranked up to this hold a rival place ...
+    reloc_check_fraction: float = 0.02  # ... or up to this fraction of the database, if more (warehouse at 1 m, 6180
+    #                                     views: the top 32 held no rival of a pose 40 m off, the top 128 four)
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
@@ -554,12 +557,14 @@ class RenderMatchTracker:
             turn = Pose.from_rotvec_t(np.array([-np.sin(a), np.cos(a), 0.0]) * length / fr.camera.fx, np.zeros(3))
             saved = fr.motion, fr.exposure_s
             fr.motion, fr.exposure_s = (turn, 1.0), 1.0  # the blur as one frame interval's motion, all exposed
-            try:
-                r2 = self._match(self.kf, fr, r.T_wc)  # its covariance scaled by this blur
+            try:  # directly against the render's corners cut blurred, else XFeat on the blurred render
+                for again in ((lambda: self._direct(self.kf, fr, r.T_wc)) if self.cfg.direct_points else None,
+                              lambda: self._match(self.kf, fr, r.T_wc)):
+                    r2 = again() if again is not None else None
+                    if self._good(r2):  # its covariance scaled by this blur
+                        return r2
             finally:
                 fr.motion, fr.exposure_s = saved
-            if self._good(r2) and r2.n_inliers > r.n_inliers:
-                return r2
         r.cov = self._blur_scaled(r.cov, length * self._base_scale(fr.camera) / r.px_factor)
         return r
 
@@ -644,12 +649,26 @@ class RenderMatchTracker:
             found = (coarse, r, self.kf)
         if found is None:
             return None
-        coarse, r, self.kf = found
-        t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
-        rival = self.db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, cfg.reloc_check,
-                                  ambiguity=cfg.reloc_ambiguity, near=near, within=within)
+        coarse, r, kf = found
+        # about to be reported: is there another place it fits about as well? Coarsely (views ranked further
+        # down), or once rendered at: identical racks fit a frame of another aisle's as well as their own
+        t0 = time.perf_counter()
+        check = max(cfg.reloc_check, int(np.ceil(cfg.reloc_check_fraction * self.db.n_views)))
+        rivals = self.db.rivals(feats, fr.camera, coarse, cfg.reloc_candidates, check, ratio=cfg.reloc_rival_verify,
+                                near=near, within=within)
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
-        return None if rival else r
+        for rv, v in rivals[:cfg.reloc_rivals_rendered]:
+            if rv.n_inliers >= cfg.reloc_ambiguity * coarse.n_inliers:
+                log.info("relocalization ambiguous: %d inliers at view %d, %d at another place %.1f m away",
+                         coarse.n_inliers, v, rv.n_inliers, coarse.T_wc.distance_to(rv.T_wc)[0])
+                return None
+            rr = self._render_and_refine(fr, rv.T_wc, 1)
+            if rr is not None and rr.n_inliers >= cfg.reloc_ambiguity * r.n_inliers:
+                log.info("relocalization ambiguous: %d inliers rendered here, %d at a place %.1f m away",
+                         r.n_inliers, rr.n_inliers, r.T_wc.distance_to(rr.T_wc)[0])
+                return None
+        self.kf = kf
+        return r
 
     # ---- the frame loop --------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, stamp: float | None = None,
