@@ -91,7 +91,6 @@ class RMConfig:
     reloc_rival_verify: float = 0.5  # ... and, once one passed, the next when it has this fraction of its coarse inliers:
     #                                  two verified places are a repetitive site (identical rack bays 2 m apart)
     reloc_ambiguity: float = 0.8  # another place with this fraction of the best's inliers makes a relocalization ambiguous
-    reloc_rivals_rendered: int = 3  # rival places with reloc_rival_verify x the coarse inliers rendered at and matched
     max_speed_mps: float = 3.0  # a relocalization within anchor_s of the last reported pose searches only views this
     anchor_s: float = 30.0  # ... fast a camera could have got to (+1 m): no jumping to an identical aisle 40 m away
     max_accel_mps2: float = 3.0  # ... and, when its velocity then is known, accepts only a pose this close to where that
@@ -634,7 +633,7 @@ class RenderMatchTracker:
             return None
         found: tuple[PnpResult, PnpResult, Keyframe] | None = None  # (coarse, verified, its keyframe)
         for coarse, _ in hyps[:cfg.reloc_verify]:
-            if found is not None and coarse.n_inliers < cfg.reloc_rival_verify * found[0].n_inliers:
+            if coarse.n_inliers < need or (found is not None and coarse.n_inliers < cfg.reloc_rival_verify * found[0].n_inliers):
                 break
             r = self._reloc_blur(self._render_and_refine(fr, coarse.T_wc, cfg.reloc_refine_rounds), fr)
             if not self._good(r):
@@ -649,26 +648,13 @@ class RenderMatchTracker:
             found = (coarse, r, self.kf)
         if found is None:
             return None
-        coarse, r, kf = found
-        # about to be reported: is there another place it fits about as well? Coarsely (views ranked further
-        # down), or once rendered at: identical racks fit a frame of another aisle's as well as their own
-        t0 = time.perf_counter()
+        coarse, r, self.kf = found
+        t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
         check = max(cfg.reloc_check, int(np.ceil(cfg.reloc_check_fraction * self.db.n_views)))
-        rivals = self.db.rivals(feats, fr.camera, coarse, cfg.reloc_candidates, check, ratio=cfg.reloc_rival_verify,
-                                near=near, within=within)
+        rival = self.db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
+                                  ambiguity=cfg.reloc_ambiguity, near=near, within=within)
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
-        for rv, v in rivals[:cfg.reloc_rivals_rendered]:
-            if rv.n_inliers >= cfg.reloc_ambiguity * coarse.n_inliers:
-                log.info("relocalization ambiguous: %d inliers at view %d, %d at another place %.1f m away",
-                         coarse.n_inliers, v, rv.n_inliers, coarse.T_wc.distance_to(rv.T_wc)[0])
-                return None
-            rr = self._render_and_refine(fr, rv.T_wc, 1)
-            if rr is not None and rr.n_inliers >= cfg.reloc_ambiguity * r.n_inliers:
-                log.info("relocalization ambiguous: %d inliers rendered here, %d at a place %.1f m away",
-                         r.n_inliers, rr.n_inliers, r.T_wc.distance_to(rr.T_wc)[0])
-                return None
-        self.kf = kf
-        return r
+        return None if rival else r
 
     # ---- the frame loop --------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, stamp: float | None = None,

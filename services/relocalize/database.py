@@ -82,20 +82,15 @@ class RelocDB:
     # ---- query -------------------------------------------------------------
     def candidates(self, feats: Features, k: int = 8, near: tuple[np.ndarray, float] | None = None) -> np.ndarray:
         """The ``k`` views whose global descriptor is most similar to the query's; with ``near`` =
-        (world position, radius m), only among the views rendered within that radius of it, plus the
-        faces at the database position nearest to it."""
+        (world position, radius m), only among the views rendered within that radius of it."""
         q = _vlad(feats.desc, self.vocab)
         sim = self.vlad @ q
         order = np.argsort(-sim)
         if near is None:
             return order[:k]
         centre, radius = near
-        dist = np.linalg.norm(self.view_poses[:, :3] - np.asarray(centre, float), axis=1)
-        order = order[dist[order] <= radius][:k]
-        # and every face at the position nearest the recent pose: a camera that was tracked a moment ago is
-        # still close to it, where a global descriptor ranks a close-up view poorly (whip pans onto racks)
-        nearest = np.flatnonzero(np.isclose(dist, dist.min(), atol=1e-3))
-        return np.concatenate([nearest[~np.isin(nearest, order)], order])
+        inside = np.linalg.norm(self.view_poses[:, :3] - np.asarray(centre, float), axis=1) <= radius
+        return order[inside[order]][:k]
 
     def _solve_views(self, feats: Features, camera: Camera, views, min_inliers: int,
                      max_error_px: float) -> list[tuple[PnpResult, int]]:
@@ -161,21 +156,9 @@ class RelocDB:
         both times. Callers that refine the coarse pose first (Render & Match) ask only once it passed,
         so a LOST stretch does not pay for it on every frame. ``within``: as for ``hypotheses``, a place where
         the camera cannot be is no rival."""
-        return bool(self.rivals(feats, camera, best, skip, check, max_error_px, ambiguity, near, within))
-
-    def rivals(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
-               max_error_px: float = 3.0, ratio: float = 0.8, near: tuple[np.ndarray, float] | None = None,
-               within: tuple[np.ndarray, float] | None = None) -> list[tuple[PnpResult, int]]:
-        """The other places (one pose each, best first) among views ranked ``skip``..``check`` that fit the query
-        with at least ``ratio`` x ``best``'s inliers (see ``has_rival``)."""
         order = self.candidates(feats, check, near)[skip:]
-        floor = max(6, int(ratio * best.n_inliers))  # weaker solutions cannot be rivals
-        found = sorted(_inside(self._solve_views(feats, camera, order, floor, max_error_px), within), key=lambda rv: -rv[0].n_inliers)
-        places: list[tuple[PnpResult, int]] = []
-        for r, v in found:
-            if _distinct(best.T_wc, r.T_wc) and all(_distinct(r.T_wc, p.T_wc) for p, _ in places):
-                places.append((r, v))
-        return places
+        floor = max(6, int(ambiguity * best.n_inliers))  # weaker solutions cannot be rivals
+        return self._rival_in(best, -1, _inside(self._solve_views(feats, camera, order, floor, max_error_px), within), ambiguity)
 
     @staticmethod
     def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float) -> bool:
