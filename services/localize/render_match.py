@@ -763,9 +763,10 @@ class RenderMatchTracker:
         self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
         good = self._good(r)  # else weakly constrained: no pose reported, but tracking continues from it
         if good and stamp is not None:
-            v = None  # world velocity, from this frame's tracked motion
+            v = None  # world velocity, from this frame's tracked motion (none if implausibly fast: stamps too close)
             if self.motion is not None and status == Status.TRACKING and consecutive:
                 v = (r.T_wc.t - T_prev.t) / self.motion[1]
+                v = v if np.linalg.norm(v) <= self.cfg.max_speed_mps else None
             self.anchor = (r.T_wc, stamp, v)
         return FrameResult(status if good else Status.LOST, r.T_wc if good else None, r.n_inliers, r.reproj_rmse_px,
                            rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, self._blur_px(fr, self._exposure(fr)))
