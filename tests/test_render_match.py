@@ -396,7 +396,7 @@ def test_a_relocalizing_frame_s_blur_is_read_from_the_image(rm_setup, site_480):
     kf = tr._keyframe(seq.groundtruth_pose(f.stamp), _Frame(f.image, cam, {}, None, 0.0, None))
     line = np.full((1, 24), 1 / 24, np.float32)
     smeared = cv2.filter2D(f.image, -1, line, borderType=cv2.BORDER_REFLECT)
-    sharp_px = tr._image_blur_px(_Frame(f.image, cam, {}, None, 0.0, None), kf)
+    sharp_px, _ = tr._image_blur(_Frame(f.image, cam, {}, None, 0.0, None), kf)
     smeared_px, angle = tr._image_blur(_Frame(smeared, cam, {}, None, 0.0, None), kf)
     assert sharp_px <= 8 and 14 <= smeared_px <= 40 and angle == 0.0, (sharp_px, smeared_px, angle)
     down_px, down = tr._image_blur(_Frame(cv2.filter2D(f.image, -1, line.T, borderType=cv2.BORDER_REFLECT), cam, {}, None, 0.0, None), kf)
@@ -405,4 +405,4 @@ def test_a_relocalizing_frame_s_blur_is_read_from_the_image(rm_setup, site_480):
     # kernel, explains a little of the difference, and that little is not read as one
     noisy = dataclasses.replace(kf, render=dataclasses.replace(kf.render, rgb=np.clip(
         kf.render.rgb + np.random.default_rng(1).normal(0, 25, kf.render.rgb.shape), 0, 255).astype(np.uint8)))
-    assert tr._image_blur_px(_Frame(f.image, cam, {}, None, 0.0, None), noisy) == 0.0
+    assert tr._image_blur(_Frame(f.image, cam, {}, None, 0.0, None), noisy)[0] == 0.0

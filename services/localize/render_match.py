@@ -496,10 +496,6 @@ class RenderMatchTracker:
             return cov
         return cov * (blur_px / self.cfg.blur_sigma_px) ** power
 
-    def _image_blur_px(self, fr: _Frame, kf: Keyframe) -> float:
-        """The frame's motion blur (frame pixels) read from the image (see ``_image_blur``)."""
-        return self._image_blur(fr, kf)[0]
-
     def _image_blur(self, fr: _Frame, kf: Keyframe) -> tuple[float, float]:
         """The frame's motion blur read from the image: the length (frame pixels) and direction (degrees from
         the image x axis) of the line kernel (over four directions) that, blurring the keyframe render,
@@ -557,13 +553,13 @@ class RenderMatchTracker:
             saved = fr.motion, fr.exposure_s
             fr.motion, fr.exposure_s = (turn, 1.0), 1.0  # the blur as one frame interval's motion, all exposed
             try:  # directly against the render's corners cut blurred, else XFeat on the blurred render
-                for again in ((lambda: self._direct(self.kf, fr, r.T_wc)) if self.cfg.direct_points else None,
-                              lambda: self._match(self.kf, fr, r.T_wc)):
-                    r2 = again() if again is not None else None
-                    if self._good(r2):  # its covariance scaled by this blur
-                        return r2
+                r2 = self._direct(self.kf, fr, r.T_wc) if self.cfg.direct_points else None
+                if not self._good(r2):
+                    r2 = self._match(self.kf, fr, r.T_wc)
             finally:
                 fr.motion, fr.exposure_s = saved
+            if self._good(r2):  # its covariance scaled by this blur
+                return r2
         r.cov = self._blur_scaled(r.cov, length * self._base_scale(fr.camera) / r.px_factor)
         return r
 
@@ -627,9 +623,7 @@ class RenderMatchTracker:
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
             return None
-        if len(hyps) > 1 and hyps[1][0].n_inliers >= cfg.reloc_ambiguity * hyps[0][0].n_inliers:
-            log.info("relocalization ambiguous: %d and %d inliers at places %.1f m apart", hyps[0][0].n_inliers,
-                     hyps[1][0].n_inliers, hyps[0][0].T_wc.distance_to(hyps[1][0].T_wc)[0])
+        if self.db.ambiguous(hyps, cfg.reloc_ambiguity):
             return None
         found: tuple[PnpResult, PnpResult, Keyframe] | None = None  # (coarse, verified, its keyframe)
         for coarse, _ in hyps[:cfg.reloc_verify]:
@@ -732,8 +726,7 @@ class RenderMatchTracker:
             if self.anchor is not None and stamp is not None and 0 <= stamp - self.anchor[1] <= self.cfg.anchor_s:
                 T_a, s_a, v_a = self.anchor
                 dt = stamp - s_a
-                near = (T_a.t, 1.0 + self.cfg.max_speed_mps * dt)
-                reach = near
+                near = (T_a.t, 1.0 + self.cfg.max_speed_mps * dt)  # also the reach, unless the velocity tightens it
                 if v_a is not None:  # it kept moving about as it did: at most max_accel away from that
                     tight = self.cfg.reach_m + 0.5 * self.cfg.max_accel_mps2 * dt * dt
                     if tight < near[1]:

@@ -116,15 +116,12 @@ class RelocDB:
         Rivals are sought among the top-``check`` views, not only the ``k`` searched (``has_rival``).
         ``near`` = (position, radius): search only views within reach of a recent pose (``candidates``).
         """
-        order = self.candidates(feats, k, near)
         # weaker solutions too: a rival only needs ``ambiguity`` x the best's inliers, which may be below min_inliers
-        results = self._solve_views(feats, camera, order, max(6, int(ambiguity * min_inliers)), max_error_px)
-        results.sort(key=lambda rv: -rv[0].n_inliers)
-        if not results or results[0][0].n_inliers < min_inliers:
+        hyps = self.hypotheses(feats, camera, k, max(6, int(ambiguity * min_inliers)), max_error_px, near)
+        if not hyps or hyps[0][0].n_inliers < min_inliers or self.ambiguous(hyps, ambiguity):
             return None, -1
-        best, best_view = results[0]
-        if self._rival_in(best, best_view, results[1:], ambiguity) or (
-                check > k and self.has_rival(feats, camera, best, k, check, min_inliers, max_error_px, ambiguity, near)):
+        best, best_view = hyps[0]
+        if check > k and self.has_rival(feats, camera, best, k, check, max_error_px, ambiguity, near):
             return None, -1
         return best, best_view
 
@@ -147,8 +144,13 @@ class RelocDB:
                 places.append((r, v))
         return places
 
+    @staticmethod
+    def ambiguous(hyps: list[tuple[PnpResult, int]], ambiguity: float = 0.8) -> bool:
+        """Whether the second place of ``hypotheses`` fits about as well as the first (``ambiguity`` x its inliers)."""
+        return len(hyps) > 1 and RelocDB._rival_in(hyps[0][0], hyps[0][1], hyps[1:2], ambiguity)
+
     def has_rival(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
-                  min_inliers: int = 30, max_error_px: float = 3.0, ambiguity: float = 0.8,
+                  max_error_px: float = 3.0, ambiguity: float = 0.8,
                   near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None) -> bool:
         """Whether views ranked ``skip``..``check`` for this query hold another place that fits it about as
         well as ``best``. In the simulated warehouse the true aisle ranked outside the top 8 twice, and a
