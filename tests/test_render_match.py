@@ -184,19 +184,23 @@ def test_region_of_interest_polygon_and_box(small_site):
         RoiConfig(polygon=((0, 0), (1, 1)))
 
 
-def test_relocalization_refuses_an_ambiguous_place(rm_setup):
-    """A site made of two identical copies 10 m apart: the same frame fits both, so no pose is given."""
+def _twin(db, shift):
+    """``db`` and a copy of it moved by ``shift``: a site made of two identical places."""
     from services.relocalize.database import RelocDB
 
+    return RelocDB(np.concatenate([db.view_poses, db.view_poses + np.r_[shift, 0, 0, 0, 0]]),
+                   np.concatenate([db.view_start, db.view_start[1:] + db.view_start[-1]]),
+                   np.concatenate([db.xyz, db.xyz + shift]), np.concatenate([db.desc, db.desc]),
+                   np.concatenate([db.vlad, db.vlad]), db.vocab, dict(db.meta))
+
+
+def test_relocalization_refuses_an_ambiguous_place(rm_setup):
+    """A site made of two identical copies 10 m apart: the same frame fits both, so no pose is given."""
     renderer, ext, db, seq, _ = rm_setup
     feats = ext.extract(seq.read(7).image)
     r, _ = db.localize(feats, seq.camera, min_inliers=20)
     assert r is not None  # the real site: one place
-    shift = np.array([10.0, 0.0, 0.0])
-    twin = RelocDB(np.concatenate([db.view_poses, db.view_poses + np.r_[shift, 0, 0, 0, 0]]),
-                   np.concatenate([db.view_start, db.view_start[1:] + db.view_start[-1]]),
-                   np.concatenate([db.xyz, db.xyz + shift]), np.concatenate([db.desc, db.desc]),
-                   np.concatenate([db.vlad, db.vlad]), db.vocab, dict(db.meta))
+    twin = _twin(db, np.array([10.0, 0.0, 0.0]))
     r2, _ = twin.localize(feats, seq.camera, k=16, min_inliers=20)
     assert r2 is None
     # the rival need not be among the views searched: one view searched, the twin found by the wider check
@@ -215,14 +219,9 @@ def test_tracker_refuses_a_twin_place_and_a_pose_beyond_reach(rm_setup):
     fit); a moment after a reported pose it takes the right copy; and a verified pose further from where the
     camera's last velocity leads than it can have got is refused (an identical rack bay 2 m on)."""
     from services.localize.render_match import _Frame
-    from services.relocalize.database import RelocDB
 
     renderer, ext, db, seq, _ = rm_setup
-    shift = np.array([10.0, 0.0, 0.0])
-    twin = RelocDB(np.concatenate([db.view_poses, db.view_poses + np.r_[shift, 0, 0, 0, 0]]),
-                   np.concatenate([db.view_start, db.view_start[1:] + db.view_start[-1]]),
-                   np.concatenate([db.xyz, db.xyz + shift]), np.concatenate([db.desc, db.desc]),
-                   np.concatenate([db.vlad, db.vlad]), db.vocab, dict(db.meta))
+    twin = _twin(db, np.array([10.0, 0.0, 0.0]))
     f6, f7 = seq.read(6), seq.read(7)
     G6, G7 = seq.groundtruth.poses[6], seq.groundtruth.poses[7]
     tr = RenderMatchTracker(renderer, ext, twin, RMConfig(recover_s=0.0))  # the database, not the last pose, re-acquires
