@@ -1,11 +1,15 @@
 """Renderer speed: milliseconds per stage and points per second.
 
-    python benchmarks/render.py [--site runs/bench/office-1] [--threads 2] [--repeats 10] [--device cpu|cuda]
+    python benchmarks/render.py [--site runs/bench/office-1] [--threads 2] [--repeats 10] [--device cpu|cuda] [--lod 4]
+    cristal sim --preset office --lidar-step 0.05 --out runs/bench-sim/office-dense   # a 64 M-point scan
+    python benchmarks/render.py --site runs/bench-sim/office-dense --lod 0 4           # level of detail off / on
 
 Renders the site's ground-truth poses at 640x480 (and 960x720) with the neural point renderer
 and prints a table: splat, depth filter, U-Net (full and half resolution), depth fill, total,
 and splat throughput in points per second. On CUDA it also times 8 single renders against one
-batch of 8. The site is simulated on first use (office preset, seed 1, ~4 M points).
+batch of 8. The site is simulated on first use (office preset, seed 1, ~4 M points). ``--lod``: the
+level of detail (at most about this many of a chunk's points per pixel; 0 = every point), one table row
+set per value, plus a cubemap (six 256 px faces, as the relocalization database renders them).
 Thread counts are set on purpose: numba and torch get --threads each.
 """
 
@@ -24,6 +28,7 @@ from _site import ensure_site
 from services.io.scans import load_scan
 from services.io.sequence import open_sequence
 from services.render.renderer import RenderConfig, Renderer
+from services.render.splat import SplatConfig
 
 
 def main() -> None:
@@ -32,6 +37,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--lod", type=float, nargs="+", default=[SplatConfig.lod_points_per_px])
     args = ap.parse_args()
     numba.set_num_threads(args.threads)
     torch.set_num_threads(args.threads)
@@ -41,12 +47,14 @@ def main() -> None:
     poses = [seq.groundtruth.poses[i] for i in np.linspace(0, len(seq) - 1, args.repeats).round().astype(int)]
     print(f"{platform.processor() or platform.machine()}, {args.threads} threads, device {args.device}, "
           f"torch {torch.__version__}, numba {numba.__version__}; scan {len(scan):,} points\n")
-    print("| resolution | U-Net scale | splat ms | filter ms | U-Net ms | depth fill ms | total ms | splat Mpts/s |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
-    for w, h in ((640, 480), (960, 720)):
-        cam = seq.camera.scaled(w / seq.camera.width)
-        for scale in (1.0, 0.5):
-            r = Renderer(scan, RenderConfig(holefill_scale=scale), device=args.device)
+    print("| level of detail | resolution | U-Net scale | splat ms | filter ms | U-Net ms | depth fill ms | total ms | splat Mpts/s |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    cubes = []
+    for lod in args.lod:
+        r = Renderer(scan, RenderConfig(SplatConfig(lod_points_per_px=lod)), device=args.device)  # prepared once
+        for w, scale in ((640, 1.0), (640, 0.5), (960, 1.0), (960, 0.5)):
+            cam = seq.camera.scaled(w / seq.camera.width)
+            r.holefill_scale = scale
             r.render(poses[0], cam)  # warm-up (compilation, allocations)
             rows = []
             for T in poses:
@@ -56,8 +64,16 @@ def main() -> None:
                 rows.append([x.timings["splat_ms"], x.timings["filter_ms"], x.timings["holefill_ms"],
                              x.timings["depthfill_ms"], tot])
             m = np.median(np.array(rows), axis=0)
-            print(f"| {w}x{h} | {scale} | {m[0]:.1f} | {m[1]:.1f} | {m[2]:.1f} | {m[3]:.1f} | {m[4]:.1f} | "
+            print(f"| {lod:g} | {cam.width}x{cam.height} | {scale} | {m[0]:.1f} | {m[1]:.1f} | {m[2]:.1f} | {m[3]:.1f} | {m[4]:.1f} | "
                   f"{len(scan) / m[0] / 1e3:.0f} |", flush=True)
+        r.holefill_scale = RenderConfig().holefill_scale or (1.0 if r.device.type == "cuda" else 0.5)
+        t0 = time.perf_counter()
+        for T in poses[:3]:
+            r.cubemap(T.t)
+        cubes.append((lod, 1e3 * (time.perf_counter() - t0) / 3))
+    print("\n| level of detail | cubemap (6 faces of 256 px, default U-Net scale) ms |\n|---|---:|")
+    for lod, ms in cubes:
+        print(f"| {lod:g} | {ms:.0f} |")
     if args.device == "cuda":
         cam = seq.camera.scaled(960 / seq.camera.width)
         r = Renderer(scan, device="cuda")

@@ -50,7 +50,7 @@ def random_room(n=60000, seed=0, origin=(500000.0, 5600000.0, 100.0)):
 def test_splat_equals_brute_force_with_distortion():
     scan = random_room()
     T_wc = Pose(look_at((1, 1, 1.5), (5, 4, 1.2)).R, scan.origin + [1, 1, 1.5])
-    r = splat(prepare_cloud(scan, chunk=1024), T_wc, CAM_D)
+    r = splat(prepare_cloud(scan, chunk=1024), T_wc, CAM_D, SplatConfig(lod_points_per_px=0))  # every point
     rgb, depth, cnt = brute_force_splat(scan, T_wc, CAM_D)
     assert (cnt > 0).mean() > 0.5
     same = np.isclose(r.depth, depth, atol=1e-4)
@@ -72,12 +72,55 @@ def test_numba_and_torch_splats_agree():
     scan = random_room(seed=2)
     T_wc = Pose(look_at((3, 0.5, 1.5), (3, 5, 1.0)).R, scan.origin + [3, 0.5, 1.5])
     r = splat(prepare_cloud(scan), T_wc, CAM_D)
-    dc = DeviceCloud(scan.xyz, scan.rgb, scan.origin, "cpu")
+    dc = DeviceCloud(prepare_cloud(scan), "cpu")
     assert dc.bytes_per_point() == 16  # the scan on the device: float32 xyz + rgba
     rgb_t, depth_t, cnt_t = splat_torch(dc, T_wc, CAM_D, chunk=10000)
     same = np.isclose(r.depth, depth_t.numpy(), atol=1e-4)
     assert same.mean() > 0.998
     assert np.abs(r.rgb - rgb_t.numpy())[same].mean() < 0.05
+
+
+def dense_wall(n=2_000_000, seed=0):
+    """A 4 x 3 m wall at x = 6 sampled every ~2.4 mm (a survey scan at short range), coloured by a smooth ramp."""
+    rng = np.random.default_rng(seed)
+    y, z = rng.uniform(-2, 2, n), rng.uniform(0, 3, n)
+    xyz = np.column_stack([np.full(n, 6.0) + rng.normal(0, 0.001, n), y, z]).astype(np.float32)
+    rgb = np.column_stack([(y + 2) * 60, z * 80, np.full(n, 100)]).astype(np.uint8)
+    return Scan(xyz, rgb, np.array([1000.0, 2000.0, 10.0]))
+
+
+def test_level_of_detail_splats_a_few_points_per_pixel_and_the_same_image():
+    scan = dense_wall()
+    cam = Camera.from_fov(160, 120, 60)
+    T_wc = Pose(look_at((0, 0, 1.5), (6, 0, 1.5)).R, scan.origin + [0, 0, 1.5])
+    cloud = prepare_cloud(scan)
+    full = splat(cloud, T_wc, cam, SplatConfig(lod_points_per_px=0))
+    lod = splat(cloud, T_wc, cam, SplatConfig(lod_points_per_px=4))
+    seen = full.count > 0
+    assert full.count[seen].mean() > 50, "the test needs many points per pixel"
+    assert lod.count[seen].mean() < 0.25 * full.count[seen].mean()  # most points never touched
+    assert (lod.count[seen] > 0).mean() > 0.99  # but (almost) no pixel left empty
+    both = seen & (lod.count > 0)
+    assert np.abs(lod.depth - full.depth)[both].max() < 0.01
+    assert np.abs(lod.rgb - full.rgb)[both].mean() < 2.0
+    # from 0.5 m away the wall puts a few points on each pixel: level of detail keeps every one
+    T_near = Pose(look_at((5.5, 0, 1.5), (6, 0, 1.5)).R, scan.origin + [5.5, 0, 1.5])
+    a, b = splat(cloud, T_near, cam, SplatConfig(lod_points_per_px=0)), splat(cloud, T_near, cam, SplatConfig(lod_points_per_px=4))
+    assert b.count.sum() >= 0.95 * a.count.sum()
+
+
+def test_level_of_detail_picks_the_same_points_in_torch():
+    scan = dense_wall(400_000, seed=1)
+    cam = Camera.from_fov(160, 120, 60)
+    T_wc = Pose(look_at((0, 0.3, 1.4), (6, 0, 1.5)).R, scan.origin + [0, 0.3, 1.4])
+    cloud = prepare_cloud(scan)
+    cfg = SplatConfig(lod_points_per_px=2)
+    r = splat(cloud, T_wc, cam, cfg)
+    rgb_t, depth_t, cnt_t = splat_torch(DeviceCloud(cloud, "cpu"), T_wc, cam, cfg, chunk=50000)
+    assert r.count.sum() < 0.5 * splat(cloud, T_wc, cam, SplatConfig(lod_points_per_px=0)).count.sum()
+    assert (cnt_t.numpy() == r.count).mean() > 0.998
+    same = np.isclose(r.depth, depth_t.numpy(), atol=1e-4)
+    assert same.mean() > 0.998
 
 
 def test_filter_removes_background_behind_wall_but_keeps_wall_and_doorway():

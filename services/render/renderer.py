@@ -97,12 +97,11 @@ class Renderer:
         self.device = _device(device)
         self.origin = scan.origin.copy()
         t0 = time.perf_counter()
+        self.cloud = prepare_cloud(scan)
         if self.device.type == "cuda":
             from services.render.splat_torch import DeviceCloud
 
-            self.cloud = DeviceCloud(scan.xyz, scan.rgb, scan.origin, self.device)
-        else:
-            self.cloud = prepare_cloud(scan)
+            self.cloud = DeviceCloud(self.cloud, self.device)
         log.info("renderer: %d points prepared on %s in %.2f s", len(scan), self.device, time.perf_counter() - t0)
         self.net = load_holefill(cfg.weights, self.device) if holefill and self.stage == "full" else None
         self.holefill_scale = cfg.holefill_scale or (1.0 if self.device.type == "cuda" else 0.5)

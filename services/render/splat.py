@@ -21,7 +21,7 @@ from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 from services.render.cloud import PreparedCloud
 
-__all__ = ["SplatConfig", "SplatResult", "splat", "visible_chunks"]
+__all__ = ["SplatConfig", "SplatResult", "splat", "visible_chunks", "chunk_limits"]
 
 
 @dataclass(frozen=True)
@@ -29,6 +29,7 @@ class SplatConfig:
     delta_abs: float = 0.02  # metres: points this far behind the nearest one still blend (the paper's value)
     delta_rel: float = 0.0  # plus this fraction of the nearest depth (useful for long ranges)
     near: float = 0.05  # metres: points closer than this to the camera plane are dropped
+    lod_points_per_px: float = 8.0  # level of detail: at most about this many points of a chunk per pixel (0 = all points)
 
 
 @dataclass
@@ -64,7 +65,7 @@ def _project(p, R, t, fx, fy, cx, cy, k1, k2, p1, p2, k3, distorted, r2max, near
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _splat(xyz, rgb, chunks, chunk, R, t, intr, dist, distorted, r2max, near, d_abs, d_rel, W, H, zbuf, acc, cnt):
+def _splat(xyz, rgb, chunks, lims, chunk, R, t, intr, dist, distorted, r2max, near, d_abs, d_rel, W, H, zbuf, acc, cnt):
     n = xyz.shape[0]
     nt = zbuf.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
@@ -77,7 +78,7 @@ def _splat(xyz, rgb, chunks, chunk, R, t, intr, dist, distorted, r2max, near, d_
     for ci in nb.prange(chunks.shape[0]):
         tid = nb.get_thread_id()
         s = chunks[ci] * chunk
-        e = min(s + chunk, n)
+        e = min(s + lims[ci], n)
         for i in range(s, e):
             idx, z = _project(xyz[i], R, t, fx, fy, cx, cy, k1, k2, p1, p2, k3, distorted, r2max, near, W, H)
             if idx >= 0 and z < zbuf[tid, idx]:
@@ -98,7 +99,7 @@ def _splat(xyz, rgb, chunks, chunk, R, t, intr, dist, distorted, r2max, near, d_
     for ci in nb.prange(chunks.shape[0]):
         tid = nb.get_thread_id()
         s = chunks[ci] * chunk
-        e = min(s + chunk, n)
+        e = min(s + lims[ci], n)
         for i in range(s, e):
             idx, z = _project(xyz[i], R, t, fx, fy, cx, cy, k1, k2, p1, p2, k3, distorted, r2max, near, W, H)
             if idx >= 0:
@@ -158,19 +159,38 @@ def visible_chunks(cloud: PreparedCloud, T_cw_local: Pose, camera: Camera, near:
     return np.flatnonzero(keep).astype(np.int64)
 
 
+def chunk_limits(cloud: PreparedCloud, chunks: np.ndarray, T_cw_local: Pose, camera: Camera,
+                 points_per_px: float) -> np.ndarray:
+    """How many of each chunk's (shuffled) points to splat: all, unless about ``points_per_px`` per pixel suffice.
+
+    A chunk of spacing s at depth z puts (f s / z)^-2 points on a pixel; its nearest bounding-box corner
+    gives z (a chunk reaching the camera plane keeps every point)."""
+    full = np.full(len(chunks), cloud.chunk, np.int64)
+    if points_per_px <= 0 or cloud.chunk_spacing is None or len(chunks) == 0:
+        return full
+    lo, hi = cloud.chunk_lo[chunks].astype(np.float64), cloud.chunk_hi[chunks].astype(np.float64)
+    corners = np.stack([np.where(m & 1, hi[:, 0], lo[:, 0]) * T_cw_local.R[2, 0] + np.where(m & 2, hi[:, 1], lo[:, 1])
+                        * T_cw_local.R[2, 1] + np.where(m & 4, hi[:, 2], lo[:, 2]) * T_cw_local.R[2, 2] for m in range(8)], 1)
+    z = np.maximum(corners.min(axis=1) + T_cw_local.t[2], 1e-3)
+    px = np.maximum(camera.fx, camera.fy) * cloud.chunk_spacing[chunks].astype(np.float64) / z  # point spacing in pixels
+    frac = np.minimum(1.0, points_per_px * px * px)
+    return np.maximum(1, np.ceil(frac * cloud.chunk)).astype(np.int64)
+
+
 def splat(cloud: PreparedCloud, T_wc: Pose, camera: Camera, cfg: SplatConfig = SplatConfig(),
           cull: bool = True) -> SplatResult:
     """Render the raw splat of ``cloud`` seen by ``camera`` at camera-to-world ``T_wc``."""
     # the cloud is stored relative to its origin: move the camera into that local frame
     T_cw_local = Pose(T_wc.R, T_wc.t - cloud.origin).inverse()
     chunks = visible_chunks(cloud, T_cw_local, camera, cfg.near) if cull else np.arange(cloud.n_chunks, dtype=np.int64)
+    lims = chunk_limits(cloud, chunks, T_cw_local, camera, cfg.lod_points_per_px)
     W, H = camera.width, camera.height
     nt = nb.get_num_threads()
     zbuf = np.empty((nt, W * H), np.float32)
     acc = np.empty((nt, W * H, 3), np.float32)
     cnt = np.empty((nt, W * H), np.int32)
     intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
-    _splat(cloud.xyz, cloud.rgb, chunks, cloud.chunk, T_cw_local.R.astype(np.float32), T_cw_local.t.astype(np.float32),
+    _splat(cloud.xyz, cloud.rgb, chunks, lims, cloud.chunk, T_cw_local.R.astype(np.float32), T_cw_local.t.astype(np.float32),
            intr, camera.dist, camera.is_distorted, _r2max(camera), cfg.near, cfg.delta_abs, cfg.delta_rel, W, H,
            zbuf, acc, cnt)
     return SplatResult(acc[0].reshape(H, W, 3), zbuf[0].reshape(H, W), cnt[0].reshape(H, W))

@@ -2,7 +2,8 @@
 
 Pass 1 is a ``scatter_reduce(amin)`` of camera z into a flat depth buffer, pass 2 an
 ``index_add`` of the colours of points within delta of that minimum, pass 3 a division.
-The cloud stays on the device as float32 xyz + uint8 rgba (16 bytes per point).
+The cloud stays on the device as float32 xyz + uint8 rgba (16 bytes per point), in the prepared
+cloud's chunk order, so frustum culling and the level of detail pick the same points as on the CPU.
 """
 
 from __future__ import annotations
@@ -12,21 +13,24 @@ import torch
 
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
-from services.render.splat import SplatConfig, _r2max
+from services.render.cloud import PreparedCloud
+from services.render.splat import SplatConfig, _r2max, chunk_limits, visible_chunks
 
 __all__ = ["DeviceCloud", "splat_torch"]
 
 
 class DeviceCloud:
-    """A scan resident on a torch device: xyz float32 (relative to ``origin``) and rgb uint8 padded to 4 bytes."""
+    """A prepared scan resident on a torch device: xyz float32 (relative to ``origin``) and rgb uint8 padded to
+    4 bytes; the chunk boxes and spacings stay on the host (``prepared``) for culling and level of detail."""
 
-    def __init__(self, xyz, rgb, origin, device: str | torch.device):
+    def __init__(self, prepared: PreparedCloud, device: str | torch.device):
         self.device = torch.device(device)
-        self.xyz = torch.tensor(np.asarray(xyz, dtype=np.float32)).to(self.device)  # copies (scans may be read-only memmaps)
-        rgba = torch.zeros((len(xyz), 4), dtype=torch.uint8)
-        rgba[:, :3] = torch.tensor(np.asarray(rgb))
+        self.xyz = torch.tensor(np.asarray(prepared.xyz, dtype=np.float32)).to(self.device)
+        rgba = torch.zeros((len(prepared), 4), dtype=torch.uint8)
+        rgba[:, :3] = torch.tensor(np.asarray(prepared.rgb))
         self.rgba = rgba.to(self.device)
-        self.origin = origin
+        self.origin = prepared.origin
+        self.prepared = prepared
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -47,9 +51,19 @@ def splat_torch(cloud: DeviceCloud, T_wc: Pose, camera: Camera, cfg: SplatConfig
     k1, k2, p1, p2, k3 = camera.distortion
     r2max = _r2max(camera)
     zbuf = torch.full((H * W,), float("inf"), device=dev)
+    # the points to splat: each visible chunk's first ``lims`` points (as the CPU splat reads them)
+    chunks = visible_chunks(cloud.prepared, T_cw, camera, cfg.near)
+    lims = np.minimum(chunk_limits(cloud.prepared, chunks, T_cw, camera, cfg.lod_points_per_px),
+                      len(cloud) - chunks * cloud.prepared.chunk)
+    starts = torch.as_tensor(chunks * cloud.prepared.chunk, device=dev)
+    lens = torch.as_tensor(lims, device=dev)
+    total = int(lims.sum())
+    offsets = torch.cumsum(lens, 0) - lens
+    pick = torch.arange(total, device=dev) + torch.repeat_interleave(starts - offsets, lens, output_size=total)
     parts = []
-    for s in range(0, len(cloud), chunk):  # bounded temporaries for 100 M-point scans
-        X = cloud.xyz[s:s + chunk] @ R.T + t
+    for s in range(0, total, chunk):  # bounded temporaries for 100 M-point scans
+        pid = pick[s:s + chunk]
+        X = cloud.xyz[pid] @ R.T + t
         z = X[:, 2]
         ok = z >= cfg.near
         x = X[:, 0] / z
@@ -65,7 +79,7 @@ def splat_torch(cloud: DeviceCloud, T_wc: Pose, camera: Camera, cfg: SplatConfig
         idx = v[ok].long() * W + u[ok].long()
         zs = z[ok]
         zbuf.scatter_reduce_(0, idx, zs, reduce="amin")
-        parts.append((idx, zs, torch.nonzero(ok).squeeze(1) + s))
+        parts.append((idx, zs, pid[ok]))
     acc = torch.zeros((H * W, 3), device=dev)
     cnt = torch.zeros((H * W,), dtype=torch.int32, device=dev)
     for idx, zs, pid in parts:
