@@ -121,3 +121,20 @@ def test_linear_motion_blur_matches_the_sub_pose_blur_for_a_short_exposure():
     assert blur_length_px(cam, a, b) > 4  # a real blur ...
     assert np.abs(exact - img).mean() > 3 * np.abs(exact - fast).mean()  # ... reproduced far closer than it moves
     assert np.abs(exact - fast)[10:-10, 10:-10].max() < 2.0
+
+
+def test_motion_blur_with_a_wild_pose_stays_finite_and_fast():
+    """A motion guess that puts points behind the camera, through a lens model far beyond its range, must blur
+    to something finite at once (OpenCV walks an outside coordinate back one image width at a time: a NaN or a
+    1e9 px map once made one blur take minutes)."""
+    import time
+
+    from services.geometry.blur import motion_blur_linear
+
+    cam = Camera(160, 120, 100.0, 100.0, 79.5, 59.5, (-0.3, 0.1, 0.0, 0.0, 0.0))
+    img = np.full((120, 160), 100, np.uint8)
+    depth = np.full((120, 160), 2.0, np.float32)
+    t0 = time.perf_counter()
+    out = motion_blur_linear(img, depth, cam, Pose.identity(), Pose.identity(), Pose.from_rotvec_t([0, 1.2, 0], [0, 0, 0.5]), 10)
+    assert time.perf_counter() - t0 < 5.0
+    assert np.isfinite(out).all()

@@ -35,8 +35,16 @@ class _Warp:
     def maps(self, T_k: Pose) -> np.ndarray:
         """(H, W, 2) float32 sampling maps for the camera at ``T_k``."""
         T_ck = self.T_cw @ T_k  # sub-pose camera -> sharp camera
-        uv, _ = self.camera.project(self.points @ T_ck.R.T + T_ck.t)
-        return uv.reshape(self.camera.height, self.camera.width, 2).astype(np.float32)
+        with np.errstate(all="ignore"):
+            uv, _ = self.camera.project(self.points @ T_ck.R.T + T_ck.t)
+        # points behind the camera or far outside the image (a wild motion guess, a lens model beyond its range)
+        # project anywhere, NaN included; OpenCV reflects an outside coordinate into the image one image width at
+        # a time, so one at 1e9 px costs millions of steps (a render blurred for an HD frame took minutes)
+        W, H = self.camera.width, self.camera.height
+        uv = np.where(np.isfinite(uv), uv, -1.0)
+        uv[:, 0] = np.clip(uv[:, 0], -W, 2 * W - 1)
+        uv[:, 1] = np.clip(uv[:, 1], -H, 2 * H - 1)
+        return uv.reshape(H, W, 2).astype(np.float32)
 
 
 def _average(src: np.ndarray, maps) -> np.ndarray:
