@@ -507,30 +507,35 @@ class RenderMatchTracker:
         h, w = ref.shape
         img = fr.image if fr.image.ndim == 2 else cv2.cvtColor(fr.image, cv2.COLOR_BGR2GRAY)
         live = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+        # compared band-passed: blur acts on edges, while the large flat areas that dominate a plain correlation
+        # barely change with it (a frame blurred 17 px: 0.810 sharp, 0.819 at its blur; band-passed 0.67 -> 0.90)
+        sigma = 3.0 * w / 320
         m = max(4, w // 16)
-        live = live[m:-m, m:-m]
+        live = (live - cv2.GaussianBlur(live, (0, 0), sigma))[m:-m, m:-m]
         live = (live - live.mean()) / (live.std() + 1e-6)
-        scores: dict[tuple[int, float], float] = {}
+        scores: dict[tuple[float, float], float] = {}  # (length in probe pixels, direction) -> correlation
         for length in self.cfg.blur_probe_px:
-            k = max(1, int(round(length * w / 640)))
+            k = 2 * int(round(length * w / 640 / 2)) + 1  # odd: the line's middle on the kernel's anchor (no shift)
+            length = length * w / 640 if k > 1 else 0.0
             for ang in ([0.0] if k == 1 else [0.0, 45.0, 90.0, 135.0]):
                 ker = np.zeros((k, k), np.float32)
-                c = (k - 1) / 2
-                for j in range(k):  # a line through the centre at this angle
-                    ker[int(round(c + (j - c) * np.sin(np.radians(ang)))), int(round(c + (j - c) * np.cos(np.radians(ang))))] = 1.0
-                b = cv2.filter2D(ref, -1, ker / ker.sum(), borderType=cv2.BORDER_REFLECT)[m:-m, m:-m]
-                scores[(k, ang)] = float(((b - b.mean()) / (b.std() + 1e-6) * live).mean())
+                c = k // 2
+                for j in range(-c, c + 1):  # a line through the centre at this angle
+                    ker[c + int(round(j * np.sin(np.radians(ang)))), c + int(round(j * np.cos(np.radians(ang))))] = 1.0
+                b = cv2.filter2D(ref, -1, ker / ker.sum(), borderType=cv2.BORDER_REFLECT)
+                b = (b - cv2.GaussianBlur(b, (0, 0), sigma))[m:-m, m:-m]
+                scores[(length, ang)] = float(((b - b.mean()) / (b.std() + 1e-6) * live).mean())
         fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
-        sharp = scores.get((1, 0.0), -1.0)
-        (k, ang), best = max(scores.items(), key=lambda kv: kv[1])
-        across = scores.get((k, (ang + 90.0) % 180.0), best)
+        sharp = scores.get((0.0, 0.0), -1.0)
+        (length, ang), best = max(scores.items(), key=lambda kv: kv[1])
+        across = scores.get((length, (ang + 90.0) % 180.0), best)
         # Smoothing of any kind helps a little where the render is noisier than the frame (sparse scans seen close
         # up). A blur counts only when it explains a real share of what the sharp render leaves unexplained, and
         # when it is one: smearing along its direction must fit clearly better than across it.
         gain = best - sharp
-        if k == 1 or gain < self.cfg.blur_probe_gain * (1.0 - sharp) or best - across < 0.5 * gain:
+        if length == 0 or gain < self.cfg.blur_probe_gain * (1.0 - sharp) or best - across < 0.5 * gain:
             return 0.0, 0.0
-        return k / (kf.scale * s), ang
+        return length / (kf.scale * s), ang
 
     def _reloc_blur(self, r: PnpResult | None, fr: _Frame) -> PnpResult | None:
         """A relocalized pose's covariance scaled by the frame's blur read from the image against the render at
