@@ -2,6 +2,7 @@
 leak, hole filling against simulator ground truth, and back-projection onto the true surfaces."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -323,3 +324,24 @@ def test_cpu_and_cuda_renders_agree(site_renderer):
     a, b = renderer.render(T_wc, cam), gpu.render(T_wc, cam)
     assert (a.measured == b.measured).mean() > 0.998
     assert np.abs(a.rgb.astype(int) - b.rgb.astype(int)).mean() < 1.0
+
+
+def test_render_order_is_kept_with_the_scan_cache_and_survives_a_bad_file(tmp_path, caplog):
+    from services.io.scans import load_scan, save_ply
+    from services.render import cloud as cloud_mod
+
+    save_ply(random_room(30000, seed=4), tmp_path / "room.ply")
+    scan = load_scan(tmp_path / "room.ply")
+    first = prepare_cloud(scan, chunk=1024)
+    kept = list(Path(scan.meta["cache_dir"]).glob("render-order-*.npy"))
+    assert len(kept) == 1
+    again = prepare_cloud(load_scan(tmp_path / "room.ply"), chunk=1024)  # from the kept order: the same cloud
+    np.testing.assert_array_equal(first.xyz, again.xyz)
+    np.testing.assert_array_equal(first.rgb, again.rgb)
+    np.testing.assert_array_equal(first.chunk_spacing, again.chunk_spacing)
+    np.save(kept[0], np.arange(10, dtype=np.uint32))  # another scan's order: recomputed, not trusted
+    third = prepare_cloud(load_scan(tmp_path / "room.ply"), chunk=1024)
+    np.testing.assert_array_equal(first.xyz, third.xyz)
+    assert "another scan" in caplog.text
+    assert np.load(kept[0]).shape == (len(scan),)  # and rewritten
+    assert cloud_mod.ORDER_VERSION >= 1
