@@ -1,8 +1,8 @@
 """Renderer speed: milliseconds per stage and points per second.
 
-    python benchmarks/render.py [--site runs/bench/office-1] [--threads 2] [--repeats 10] [--device cpu|cuda] [--lod 4]
+    python benchmarks/render.py [--site runs/bench/office-1] [--threads 2] [--repeats 10] [--device cpu|cuda] [--lod 8]
     cristal sim --preset office --lidar-step 0.05 --out runs/bench-sim/office-dense   # a 64 M-point scan
-    python benchmarks/render.py --site runs/bench-sim/office-dense --lod 0 4           # level of detail off / on
+    python benchmarks/render.py --site runs/bench-sim/office-dense --lod 0 8           # level of detail off / on
 
 Renders the site's ground-truth poses at 640x480 (and 960x720) with the neural point renderer
 and prints a table: splat, depth filter, U-Net (full and half resolution), depth fill, total,

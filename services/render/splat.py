@@ -8,6 +8,10 @@ No locks: every thread owns private depth and colour buffers that are reduced at
 (two threads on a laptop, sixteen on a server: the buffers are small next to the scan).
 Chunks whose bounding box is outside the view frustum are skipped before any point is
 touched. Pixel centres are at integer coordinates: a point lands on ``round(u), round(v)``.
+
+Level of detail (``SplatConfig.lod_points_per_px``): a chunk seen from so far that more than that many of
+its points would land on each pixel is read only up to the prefix that gives that many (chunks are shuffled
+inside, ``services.render.cloud``): a 64 M-point scan's cubemap costs half of what every point costs.
 """
 
 from __future__ import annotations
@@ -29,7 +33,9 @@ class SplatConfig:
     delta_abs: float = 0.02  # metres: points this far behind the nearest one still blend (the paper's value)
     delta_rel: float = 0.0  # plus this fraction of the nearest depth (useful for long ranges)
     near: float = 0.05  # metres: points closer than this to the camera plane are dropped
-    lod_points_per_px: float = 8.0  # level of detail: at most about this many points of a chunk per pixel (0 = all points)
+    lod_points_per_px: float = 8.0  # level of detail: about this many of a chunk's points per pixel suffice (0 = every point).
+    #                                 A 64 M-point office's image is unchanged (SSIM 0.8955 at 8 and with every point); at 4 its
+    #                                 renders lose 0.002 SSIM, and a 4 M-point walk that cuts 6 % of its points 18 of 114 frames
 
 
 @dataclass

@@ -8,6 +8,8 @@ cloud's chunk order, so frustum culling and the level of detail pick the same po
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
@@ -30,7 +32,8 @@ class DeviceCloud:
         rgba[:, :3] = torch.tensor(np.asarray(prepared.rgb))
         self.rgba = rgba.to(self.device)
         self.origin = prepared.origin
-        self.prepared = prepared
+        # the host keeps only what culling and level of detail read (chunk boxes, spacings), not a second scan
+        self.prepared = dataclasses.replace(prepared, xyz=np.empty((0, 3), np.float32), rgb=np.empty((0, 3), np.uint8))
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
