@@ -345,3 +345,17 @@ def test_render_order_is_kept_with_the_scan_cache_and_survives_a_bad_file(tmp_pa
     assert "another scan" in caplog.text
     assert np.load(kept[0]).shape == (len(scan),)  # and rewritten
     assert cloud_mod.ORDER_VERSION >= 1
+
+
+def test_morton_codes_interleave_the_grid_cells_bits():
+    from services.render.cloud import _morton_codes
+
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(0, 20, (20000, 3)).astype(np.float32)
+    lo = xyz.min(axis=0)
+    q = np.floor((xyz - lo) / np.float32(0.05)).astype(np.int64)
+    want = np.zeros(len(xyz), np.uint64)
+    for bit in range(21):  # bit b of axis a lands on bit 3 b + a
+        for a in range(3):
+            want |= ((q[:, a].astype(np.uint64) >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + a)
+    np.testing.assert_array_equal(_morton_codes(xyz, lo, np.float32(0.05)), want)

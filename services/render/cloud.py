@@ -21,6 +21,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba as nb
 import numpy as np
 
 from services.io.atomic import atomic_write
@@ -52,8 +53,9 @@ class PreparedCloud:
         return int(self.chunk_lo.shape[0])
 
 
-def _part1by2(x: np.ndarray) -> np.ndarray:
-    x = x.astype(np.uint64) & np.uint64(0x1FFFFF)
+@nb.njit(inline="always")
+def _spread3(x):
+    x = x & np.uint64(0x1FFFFF)
     x = (x | (x << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
     x = (x | (x << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
     x = (x | (x << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
@@ -62,13 +64,25 @@ def _part1by2(x: np.ndarray) -> np.ndarray:
     return x
 
 
+@nb.njit(parallel=True, cache=True)
+def _morton_codes(xyz, lo, cell):
+    """Morton codes (x, y, z bits interleaved, 21 bits each) of the ``cell`` grid cells of ``xyz`` counted from
+    ``lo``, in one parallel pass (in numpy, the same codes took 12 s of temporaries for 64 M points)."""
+    out = np.empty(xyz.shape[0], np.uint64)
+    for i in nb.prange(xyz.shape[0]):
+        c = np.uint64(0)
+        for a in range(3):
+            q = np.uint64(max(0, np.int64(np.floor((xyz[i, a] - lo[a]) / cell))))  # float32, as numpy would
+            c |= _spread3(q) << np.uint64(a)
+        out[i] = c
+    return out
+
+
 def render_order(xyz: np.ndarray, cell: float = 0.05, chunk: int = CHUNK) -> np.ndarray:
     """The preparation order of points ``xyz``: Morton order on a ``cell`` grid, shuffled inside each run of
     ``chunk`` points (the last, partial one its own) so that any prefix of a chunk is a uniform sample of it."""
     n = len(xyz)
-    q = np.floor((xyz - xyz.min(axis=0)) / cell).astype(np.int64)
-    code = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
-    del q
+    code = _morton_codes(xyz, xyz.min(axis=0).astype(np.float32), np.float32(cell))
     order = np.argsort(code, kind="stable")
     del code
     rng = np.random.default_rng(0)
