@@ -52,6 +52,7 @@ def main() -> None:
     cubes = []
     for lod in args.lod:
         r = Renderer(scan, RenderConfig(SplatConfig(lod_points_per_px=lod)), device=args.device)  # prepared once
+        default_scale = r.holefill_scale
         for w, scale in ((640, 1.0), (640, 0.5), (960, 1.0), (960, 0.5)):
             cam = seq.camera.scaled(w / seq.camera.width)
             r.holefill_scale = scale
@@ -66,7 +67,7 @@ def main() -> None:
             m = np.median(np.array(rows), axis=0)
             print(f"| {lod:g} | {cam.width}x{cam.height} | {scale} | {m[0]:.1f} | {m[1]:.1f} | {m[2]:.1f} | {m[3]:.1f} | {m[4]:.1f} | "
                   f"{len(scan) / m[0] / 1e3:.0f} |", flush=True)
-        r.holefill_scale = RenderConfig().holefill_scale or (1.0 if r.device.type == "cuda" else 0.5)
+        r.holefill_scale = default_scale
         t0 = time.perf_counter()
         for T in poses[:3]:
             r.cubemap(T.t)

@@ -42,8 +42,8 @@ class PreparedCloud:
     origin: np.ndarray  # (3,) float64
     chunk_lo: np.ndarray  # (C, 3) float32 bbox min per chunk
     chunk_hi: np.ndarray  # (C, 3) float32 bbox max per chunk
+    chunk_spacing: np.ndarray  # (C,) float32 metres: the mean distance between a chunk's points
     chunk: int = CHUNK
-    chunk_spacing: np.ndarray | None = None  # (C,) float32 metres: the mean distance between a chunk's points
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -136,7 +136,7 @@ def prepare_cloud(scan: Scan, cell: float = 0.05, chunk: int = CHUNK) -> Prepare
         lo[full], hi[full] = xyz_s[full * chunk:].min(axis=0), xyz_s[full * chunk:].max(axis=0)
     counts = np.full(len(lo), chunk, np.float64)
     counts[-1] = n - (len(lo) - 1) * chunk
-    return PreparedCloud(xyz_s, rgb_s, scan.origin.copy(), lo, hi, chunk, chunk_spacing(lo, hi, counts))
+    return PreparedCloud(xyz_s, rgb_s, scan.origin.copy(), lo, hi, chunk_spacing(lo, hi, counts), chunk)
 
 
 def chunk_spacing(lo: np.ndarray, hi: np.ndarray, counts: np.ndarray) -> np.ndarray:

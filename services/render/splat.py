@@ -145,12 +145,16 @@ def _r2max(camera: Camera) -> float:
     return float((xy ** 2).sum(axis=1).max() * 1.5)
 
 
+def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The eight corners (C, 8, 3) of boxes ``lo``..``hi`` (C, 3), in float64."""
+    lo, hi = lo.astype(np.float64), hi.astype(np.float64)
+    return np.stack([np.stack([np.where(m & 1, hi[:, 0], lo[:, 0]), np.where(m & 2, hi[:, 1], lo[:, 1]),
+                               np.where(m & 4, hi[:, 2], lo[:, 2])], -1) for m in range(8)], 1)
+
+
 def visible_chunks(cloud: PreparedCloud, T_cw_local: Pose, camera: Camera, near: float) -> np.ndarray:
     """Indices of chunks whose bounding box may intersect the view frustum (conservative)."""
-    lo, hi = cloud.chunk_lo.astype(np.float64), cloud.chunk_hi.astype(np.float64)
-    corners = np.stack([np.stack([np.where(m & 1, hi[:, 0], lo[:, 0]), np.where(m & 2, hi[:, 1], lo[:, 1]),
-                                  np.where(m & 4, hi[:, 2], lo[:, 2])], -1) for m in range(8)], 1)  # (C, 8, 3)
-    Xc = corners @ T_cw_local.R.T + T_cw_local.t
+    Xc = _box_corners(cloud.chunk_lo, cloud.chunk_hi) @ T_cw_local.R.T + T_cw_local.t
     X, Y, Z = Xc[..., 0], Xc[..., 1], Xc[..., 2]
     # tangents of the frustum's side planes (through the camera centre), widened for distortion
     W, H = camera.width, camera.height
@@ -172,12 +176,10 @@ def chunk_limits(cloud: PreparedCloud, chunks: np.ndarray, T_cw_local: Pose, cam
     A chunk of spacing s at depth z puts (f s / z)^-2 points on a pixel; its nearest bounding-box corner
     gives z (a chunk reaching the camera plane keeps every point)."""
     full = np.full(len(chunks), cloud.chunk, np.int64)
-    if points_per_px <= 0 or cloud.chunk_spacing is None or len(chunks) == 0:
+    if points_per_px <= 0 or len(chunks) == 0:
         return full
-    lo, hi = cloud.chunk_lo[chunks].astype(np.float64), cloud.chunk_hi[chunks].astype(np.float64)
-    corners = np.stack([np.where(m & 1, hi[:, 0], lo[:, 0]) * T_cw_local.R[2, 0] + np.where(m & 2, hi[:, 1], lo[:, 1])
-                        * T_cw_local.R[2, 1] + np.where(m & 4, hi[:, 2], lo[:, 2]) * T_cw_local.R[2, 2] for m in range(8)], 1)
-    z = np.maximum(corners.min(axis=1) + T_cw_local.t[2], 1e-3)
+    depths = _box_corners(cloud.chunk_lo[chunks], cloud.chunk_hi[chunks]) @ T_cw_local.R[2] + T_cw_local.t[2]
+    z = np.maximum(depths.min(axis=1), 1e-3)
     px = np.maximum(camera.fx, camera.fy) * cloud.chunk_spacing[chunks].astype(np.float64) / z  # point spacing in pixels
     frac = np.minimum(1.0, points_per_px * px * px)
     return np.maximum(1, np.ceil(frac * cloud.chunk)).astype(np.int64)
