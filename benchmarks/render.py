@@ -4,7 +4,7 @@
     cristal sim --preset office --lidar-step 0.05 --out runs/bench-sim/office-dense   # a 64 M-point scan
     python benchmarks/render.py --site runs/bench-sim/office-dense --lod 0 8           # level of detail off / on
 
-Renders the site's ground-truth poses at 640x480 (and 960x720) with the neural point renderer
+Renders the site's ground-truth poses at 640 and 960 px wide (--widths) with the neural point renderer
 and prints a table: splat, depth filter, U-Net (full and half resolution), depth fill, total,
 and splat throughput in points per second. On CUDA it also times 8 single renders against one
 batch of 8. The site is simulated on first use (office preset, seed 1, ~4 M points). ``--lod``: the
@@ -38,6 +38,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--lod", type=float, nargs="+", default=[SplatConfig.lod_points_per_px])
+    ap.add_argument("--widths", type=int, nargs="+", default=[640, 960],
+                    help="image widths to time (the sequence camera scaled; default 640 960)")
     args = ap.parse_args()
     numba.set_num_threads(args.threads)
     torch.set_num_threads(args.threads)
@@ -53,7 +55,7 @@ def main() -> None:
     for lod in args.lod:
         r = Renderer(scan, RenderConfig(SplatConfig(lod_points_per_px=lod)), device=args.device)  # prepared once
         default_scale = r.holefill_scale
-        for w, scale in ((640, 1.0), (640, 0.5), (960, 1.0), (960, 0.5)):
+        for w, scale in ((w, s) for w in args.widths for s in (1.0, 0.5)):
             cam = seq.camera.scaled(w / seq.camera.width)
             r.holefill_scale = scale
             r.render(poses[0], cam)  # warm-up (compilation, allocations)
@@ -76,7 +78,7 @@ def main() -> None:
     for lod, ms in cubes:
         print(f"| {lod:g} | {ms:.0f} |")
     if args.device == "cuda":
-        cam = seq.camera.scaled(960 / seq.camera.width)
+        cam = seq.camera.scaled(args.widths[-1] / seq.camera.width)
         r = Renderer(scan, device="cuda")
         torch.cuda.synchronize()
         t0 = time.perf_counter()
@@ -87,7 +89,7 @@ def main() -> None:
         t0 = time.perf_counter()
         r.render_batch(poses[:8], cam)
         torch.cuda.synchronize()
-        print(f"\n8 views 960x720: single renders {single * 1e3:.1f} ms, batch {1e3 * (time.perf_counter() - t0):.1f} ms")
+        print(f"\n8 views {cam.width}x{cam.height}: single renders {single * 1e3:.1f} ms, batch {1e3 * (time.perf_counter() - t0):.1f} ms")
 
 
 if __name__ == "__main__":

@@ -125,14 +125,17 @@ class Renderer:
         if stage == "full" and self.net is None:
             raise ValueError("this renderer was built without hole filling; use stage='filter'")
         tm: dict[str, float] = {}
+        sync = torch.cuda.synchronize if self.device.type == "cuda" else (lambda: None)  # true per-stage times on a GPU
         t0 = time.perf_counter()
         rgb, depth = self._splat(T_wc, camera)
+        sync()
         tm["splat_ms"] = 1e3 * (time.perf_counter() - t0)
         if stage == "splat":
             keep = depth > 0
         else:
             t0 = time.perf_counter()
             keep = hierarchical_depth_filter(depth, self.cfg.filter)
+            sync()
             tm["filter_ms"] = 1e3 * (time.perf_counter() - t0)
         depth = torch.where(keep, depth, torch.zeros_like(depth))
         rgb01 = rgb.permute(2, 0, 1)[None] / 255.0 * keep[None, None]
@@ -142,6 +145,7 @@ class Renderer:
             radius = round(self.cfg.grow_px * camera.width / 640)
             grown, gmask = grow_colours(rgb01, mask, radius) if radius > 0 else (rgb01, mask)
             rgb01 = self._holefill(grown, gmask, depth[None, None])
+            sync()
             tm["holefill_ms"] = 1e3 * (time.perf_counter() - t0)
             t0 = time.perf_counter()
         dense = fill_depth(depth[None, None], keep[None, None])[0, 0]
