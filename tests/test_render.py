@@ -357,3 +357,33 @@ def test_morton_codes_interleave_the_grid_cells_bits():
         for a in range(3):
             want |= ((q[:, a].astype(np.uint64) >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + a)
     np.testing.assert_array_equal(_morton_codes(xyz, lo, np.float32(0.05)), want)
+
+
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def test_motion_blur_on_the_torch_device_matches_the_numpy_blur(device):
+    """The GPU server blurs renders with grid_sample; it must be the same blur as the OpenCV path: a distorted
+    camera, depth with holes (far away), a grey and a colour image, and a wild pose that must stay finite."""
+    import cv2
+
+    from services.geometry.blur import motion_blur_linear
+    from services.render.blur_torch import motion_blur_linear_torch
+
+    rng = np.random.default_rng(3)
+    cam = Camera(200, 150, 150.0, 150.0, 99.5, 74.5, (-0.2, 0.05, 0.001, -0.001, 0.0))
+    grey = cv2.GaussianBlur(rng.integers(0, 255, (150, 200), dtype=np.uint8), (0, 0), 2)
+    colour = cv2.GaussianBlur(rng.integers(0, 255, (150, 200, 3), dtype=np.uint8), (0, 0), 2)
+    depth = np.linspace(1.5, 4.0, 200, dtype=np.float32)[None].repeat(150, 0)
+    depth[60:80, 90:120] = 0.0  # no depth: far away on both paths
+    T = Pose.from_rotvec_t([0.1, -0.2, 0.05], [1.0, 2.0, 1.5])
+    a = T @ Pose.from_rotvec_t([0, -0.04, 0.01], [-0.02, 0, 0])  # ~12 px of blur
+    b = T @ Pose.from_rotvec_t([0, 0.04, -0.01], [0.02, 0, 0])
+    for img in (grey, colour):
+        ref = motion_blur_linear(img, depth, cam, T, a, b, 9)
+        got = motion_blur_linear_torch(img, depth, cam, T, a, b, 9, device)
+        assert got.shape == ref.shape and got.dtype == np.float32
+        assert np.abs(ref - img).mean() > 3  # a real blur ...
+        inner = (slice(12, -12), slice(12, -12))  # (borders: OpenCV and torch reflect a half pixel apart)
+        assert np.abs(ref - got)[inner].mean() < 0.05 and np.abs(ref - got)[inner].max() < 1.0
+    assert np.array_equal(motion_blur_linear_torch(grey, depth, cam, T, a, b, 1, device), grey.astype(np.float32))
+    wild = motion_blur_linear_torch(grey, depth, cam, T, T, T @ Pose.from_rotvec_t([0, 1.2, 0], [0, 0, 0.5]), 10, device)
+    assert np.isfinite(wild).all()

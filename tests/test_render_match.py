@@ -405,3 +405,39 @@ def test_a_relocalizing_frame_s_blur_is_read_from_the_image(rm_setup, site_480):
     noisy = dataclasses.replace(kf, render=dataclasses.replace(kf.render, rgb=np.clip(
         kf.render.rgb + np.random.default_rng(1).normal(0, 25, kf.render.rgb.shape), 0, 255).astype(np.uint8)))
     assert tr._image_blur(_Frame(f.image, cam, {}, None, 0.0, None), noisy)[0] == 0.0
+
+
+
+def test_a_high_resolution_frame_is_relocalized_at_the_database_s_scale(tmp_path_factory):
+    """XFeat matches poorly across large scale changes: frames matched at full size with several times the
+    database faces' pixels per radian (a 1280x720 camera on the GPU) relocalized nowhere for 70 frames. The
+    query is made at most reloc_px_ratio x the faces' resolution; tracking keeps the full frame."""
+    import torch
+
+    from services.features.xfeat import XFeatExtractor
+    from services.io.scans import load_scan
+    from services.io.sequence import open_sequence
+    from services.relocalize.database import DBConfig, build_database
+    from services.relocalize.roi import RoiConfig, sample_positions
+    from services.render.renderer import Renderer
+    from services.sim.site import config_for, generate_site
+
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("hires")
+    generate_site(config_for("office", seed=3, frames=12, width=960, height=720, lidar_step_deg=0.6), out)
+    scan = load_scan(out / "scan.ply")
+    renderer, ext = Renderer(scan, device="cpu"), XFeatExtractor(device="cpu", top_k=1024)  # frames at full size
+    db = build_database(renderer, sample_positions(scan, RoiConfig(spacing=1.5)), ext, DBConfig(face_size=192, top_k=512))
+    seq = open_sequence(out / "seq_00")
+    assert seq.camera.fx > 6 * db.meta["face_size"] / 2
+    found = 0
+    for i in (6, 8, 10):
+        f = seq.read(i)
+        r = RenderMatchTracker(renderer, ext, db).process(f.image, seq.camera)
+        if r.status == Status.RELOCALIZED:
+            dt, dr = seq.groundtruth.poses[i].distance_to(r.T_wc)
+            assert dt < 0.02 and dr < 0.2, (i, dt, dr)
+            found += 1
+        assert RenderMatchTracker(renderer, ext, db, RMConfig(reloc_px_ratio=0)).process(f.image, seq.camera).status \
+            == Status.LOST  # matched at full size: nowhere
+    assert found >= 2
