@@ -110,6 +110,8 @@ class PnlConfig:
     align_min_inlier_frac: float = 0.5  # ... and keep the aligned solution only when this share of the alignments agree
     exposure_fraction: float = 0.3  # exposure / frame interval assumed for motion blur (indoor video: ~10 ms at 30 fps)
     blur_min_px: float = 6.0  # direct tracking smears its templates with the predicted motion from this blur on
+    blur_sigma_px: float = 5.0  # ... and a direct pose's covariance grows by blur / this (px at 640 wide) beyond it, as in
+    #                             Render & Match: smeared templates align less surely than their gradients say
     direct_landmarks: int = 120  # tracking first aligns this many visible landmarks from the prediction, no ORB; 0: off
     align_passes: int = 3  # alignment and pose solve alternate until the pose moves less than half its sigma, at most this often
     align_sigma_px: float = 0.5  # a corner patch's alignment noise (1 sigma, px; measured 0.2-0.3 px at the true pose)
@@ -304,6 +306,16 @@ class PnlLocalizer:
         """Start tracking from an external pose (e.g. a server answer); no velocity is assumed."""
         self.T_last = T_wc
         self._vel = None
+
+    def _direct_retry(self, fr: _Frame, pred: Pose, tm: dict):
+        """The direct step from ``pred``; when it fails, once more with twice the patches: on a fast turn's blurred
+        frame only about a quarter of them converge (from the true pose, office frames 95-98: 27-29 of 120, 50-54 of
+        240, all within 0.5 cm / 0.07 deg). None unless the pose is good."""
+        for n in (self.cfg.direct_landmarks, 2 * self.cfg.direct_landmarks):
+            r = self._direct(fr, pred, tm, n)
+            if self._plausible(r) and self._good(r, fr):
+                return r
+        return None
 
     # ---- frame preparation -------------------------------------------------------------
     def _extractor(self, width: int) -> OrbExtractor:
@@ -526,13 +538,10 @@ class PnlLocalizer:
     def _blur_deltas(self, fr: _Frame) -> list | None:
         """The camera's motion over the exposure as camera-frame deltas around the frame's pose, from the velocity
         (``exposure_fraction`` of the frame interval: P&L gets no timestamps), when it smears ``blur_min_px`` or more."""
-        if self._vel is None or self.cfg.exposure_fraction <= 0:
+        if self._blur_px(fr) < self.cfg.blur_min_px:  # (0 without a velocity)
             return None
         ident = Pose.identity()
         e = self.cfg.exposure_fraction
-        blur = blur_length_px(fr.camera, ident, ident.interpolate(self._vel, e))
-        if blur < self.cfg.blur_min_px:
-            return None
         n = 7  # odd: the frame's own pose is one of the samples
         out = []
         for f in np.linspace(-e / 2, e / 2, n):
@@ -565,18 +574,28 @@ class PnlLocalizer:
         o = o[np.argsort(rank, kind="stable")]
         return rows[o[:n]]
 
-    def _direct(self, fr: _Frame, T_wc_pred: Pose, tm: dict):
-        """Track without keypoints: align the frame to the patches of up to ``direct_landmarks`` visible landmarks
-        from the predicted pose and solve. Returns the aligned solution (as ``_aligned``) or None."""
+    def _direct(self, fr: _Frame, T_wc_pred: Pose, tm: dict, n: int | None = None):
+        """Track without keypoints: align the frame to the patches of up to ``n`` (default ``direct_landmarks``)
+        visible landmarks from the predicted pose and solve. Returns the aligned solution (as ``_aligned``) or None."""
         t0 = time.perf_counter()
         rows = self._local(T_wc_pred)
         T_cw = T_wc_pred.inverse()
         R, t = T_cw.R.copy(), T_cw.t.copy()
         visible, _, _, _ = self._visible(fr, R, t, rows)
-        sel = self._corners(fr, R, t, visible, self.cfg.direct_landmarks)
+        sel = self._corners(fr, R, t, visible, n or self.cfg.direct_landmarks)
         r = self._aligned(fr, R, t, sel, max_moved_px=None, blur=self._blur_deltas(fr))
-        tm["direct_ms"] = 1e3 * (time.perf_counter() - t0)
+        tm["direct_ms"] = tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+        b = self._blur_px(fr) / (self.cfg.blur_sigma_px * fr.width / 640)
+        if r is not None and b > 1:
+            r = (*r[:4], r[4] * b ** 0.5, r[5] * b ** 0.5, r[6])
         return r
+
+    def _blur_px(self, fr: _Frame) -> float:
+        """The frame's predicted motion blur (frame pixels) from the velocity over the assumed exposure."""
+        if self._vel is None or self.cfg.exposure_fraction <= 0:
+            return 0.0
+        ident = Pose.identity()
+        return blur_length_px(fr.camera, ident, ident.interpolate(self._vel, self.cfg.exposure_fraction))
 
     def _gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey (float32), undistorted like its keypoints; computed once per frame."""
@@ -682,9 +701,7 @@ class PnlLocalizer:
                 pred = self.T_last @ self._vel  # T_wc(t) = T_wc(t-1) @ (T_c(t-2)c(t-1))
         if pred is not None:
             if self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0:
-                r = self._direct(fr, pred, tm)  # no ORB at all when the prediction is inside the windows' reach
-                if not (self._plausible(r) and self._good(r, fr)):
-                    r = None
+                r = self._direct_retry(fr, pred, tm)  # no ORB at all when the prediction is inside the windows' reach
             if r is None:
                 r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
             if prior is None and not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
@@ -702,16 +719,12 @@ class PnlLocalizer:
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm)
         R, t, n, rmse, sig_m, sig_deg, _ = r
         T_wc = Pose(R.T, -R.T @ t)
-        if not self._good(r, fr):  # weakly constrained: no pose reported, but tracking continues from it
-            if self.T_last is not None and status == Status.TRACKING:  # a fast pan keeps its prediction
-                self._vel = self.T_last.inverse() @ T_wc
-            else:
-                self._vel = None
-            self.T_last = T_wc
-            return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg)
-        if self.T_last is not None and status == Status.TRACKING:
+        if self.T_last is not None and status == Status.TRACKING:  # (also weakly constrained: a fast pan keeps it)
             self._vel = self.T_last.inverse() @ T_wc
         else:
             self._vel = None
+        if not self._good(r, fr):  # weakly constrained: no pose reported, but tracking continues from it
+            self.T_last = T_wc
+            return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg)
         self.T_last = T_wc
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
