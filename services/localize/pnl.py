@@ -683,6 +683,13 @@ class PnlLocalizer:
             r2 = self._track(fr, Pose(r[0].T, -r[0].T @ r[1]), self.cfg.fine_radius_px, tm)
             if self._plausible(r2):
                 r = r2
+        if self._plausible(r) and not self._good(r, fr) and self.patches is not None and self.cfg.align \
+                and self.cfg.direct_landmarks > 0:
+            # the keypoint pose is close but not sure: the direct step from it, as from a tracking prediction (cold
+            # frames of the office walk: 6 of 11 failures were plausible keypoint poses of 39-84 inliers)
+            rd = self._direct_retry(fr, Pose(r[0].T, -r[0].T @ r[1]), tm)
+            if rd is not None:
+                r = rd
         return r
 
     # ---- the frame loop ---------------------------------------------------------------------------
