@@ -109,7 +109,8 @@ class PnlConfig:
     align_sigma_factor: float = 3.0  # align only from keypoint solutions within this many times the gates ...
     align_min_inlier_frac: float = 0.5  # ... and keep the aligned solution only when this share of the alignments agree
     exposure_fraction: float = 0.3  # exposure / frame interval assumed for motion blur (indoor video: ~10 ms at 30 fps)
-    blur_min_px: float = 6.0  # direct tracking smears its templates with the predicted motion from this blur on
+    blur_min_px: float = 6.0  # direct tracking smears its templates with the predicted motion from this blur on (px at
+    #                           640 wide: a sharper camera's pixels are finer, not its blur longer)
     blur_sigma_px: float = 5.0  # ... and a direct pose's covariance grows by blur / this (px at 640 wide) beyond it, as in
     #                             Render & Match: smeared templates align less surely than their gradients say
     direct_landmarks: int = 120  # tracking first aligns this many visible landmarks from the prediction, no ORB; 0: off
@@ -538,7 +539,7 @@ class PnlLocalizer:
     def _blur_deltas(self, fr: _Frame) -> list | None:
         """The camera's motion over the exposure as camera-frame deltas around the frame's pose, from the velocity
         (``exposure_fraction`` of the frame interval: P&L gets no timestamps), when it smears ``blur_min_px`` or more."""
-        if self._blur_px(fr) < self.cfg.blur_min_px:  # (0 without a velocity)
+        if self._blur_px(fr) < self.cfg.blur_min_px * fr.width / 640:  # (0 without a velocity)
             return None
         ident = Pose.identity()
         e = self.cfg.exposure_fraction
