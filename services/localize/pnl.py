@@ -314,7 +314,7 @@ class PnlLocalizer:
         240, all within 0.5 cm / 0.07 deg). None unless the pose is good."""
         for n in (self.cfg.direct_landmarks, 2 * self.cfg.direct_landmarks):
             r = self._direct(fr, pred, tm, n)
-            if self._plausible(r) and self._good(r, fr):
+            if self._good(r, fr):
                 return r
         return None
 
@@ -536,10 +536,11 @@ class PnlLocalizer:
             return rows
         return np.concatenate([rows, self._corners(fr, R, t, visible[~np.isin(visible, lm[inl])], self.cfg.align_extra)])
 
-    def _blur_deltas(self, fr: _Frame) -> list | None:
+    def _blur_deltas(self, fr: _Frame, blur_px: float) -> list | None:
         """The camera's motion over the exposure as camera-frame deltas around the frame's pose, from the velocity
-        (``exposure_fraction`` of the frame interval: P&L gets no timestamps), when it smears ``blur_min_px`` or more."""
-        if self._blur_px(fr) < self.cfg.blur_min_px * fr.width / 640:  # (0 without a velocity)
+        (``exposure_fraction`` of the frame interval: P&L gets no timestamps), when its blur ``blur_px``
+        (:meth:`_blur_px`) smears ``blur_min_px`` or more."""
+        if blur_px < self.cfg.blur_min_px * fr.width / 640:  # (0 without a velocity)
             return None
         ident = Pose.identity()
         e = self.cfg.exposure_fraction
@@ -584,9 +585,10 @@ class PnlLocalizer:
         R, t = T_cw.R.copy(), T_cw.t.copy()
         visible, _, _, _ = self._visible(fr, R, t, rows)
         sel = self._corners(fr, R, t, visible, n or self.cfg.direct_landmarks)
-        r = self._aligned(fr, R, t, sel, max_moved_px=None, blur=self._blur_deltas(fr))
+        blur = self._blur_px(fr)
+        r = self._aligned(fr, R, t, sel, max_moved_px=None, blur=self._blur_deltas(fr, blur))
         tm["direct_ms"] = tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
-        b = self._blur_px(fr) / (self.cfg.blur_sigma_px * fr.width / 640)
+        b = blur / (self.cfg.blur_sigma_px * fr.width / 640)
         if r is not None and b > 1:
             r = (*r[:4], r[4] * b ** 0.5, r[5] * b ** 0.5, r[6])
         return r

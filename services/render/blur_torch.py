@@ -10,6 +10,8 @@ between them and the sharp image averaged over ``n`` of them.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -19,16 +21,9 @@ from services.geometry.se3 import Pose
 
 __all__ = ["motion_blur_linear_torch"]
 
-_RAYS: dict[tuple, torch.Tensor] = {}
-
-
+@functools.lru_cache(maxsize=8)
 def _rays(camera: Camera, device: torch.device) -> torch.Tensor:
-    key = (camera, str(device))
-    if key not in _RAYS:
-        if len(_RAYS) >= 8:
-            _RAYS.pop(next(iter(_RAYS)))
-        _RAYS[key] = torch.as_tensor(camera.pixel_rays().reshape(-1, 3), dtype=torch.float32, device=device)
-    return _RAYS[key]
+    return torch.as_tensor(camera.pixel_rays().reshape(-1, 3), dtype=torch.float32, device=device)
 
 
 def _grid(points: torch.Tensor, camera: Camera, T_ck: Pose) -> torch.Tensor:
