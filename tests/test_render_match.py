@@ -441,3 +441,27 @@ def test_a_high_resolution_frame_is_relocalized_at_the_database_s_scale(tmp_path
         assert RenderMatchTracker(renderer, ext, db, RMConfig(reloc_px_ratio=0)).process(f.image, seq.camera).status \
             == Status.LOST  # matched at full size: nowhere
     assert found >= 2
+
+
+def test_a_pose_the_motion_cannot_reach_is_not_reported(rm_setup, site_480):
+    """A frame whose image shows the camera several frames further along than its stamp allows (a wrong pose
+    whose matches agree, as far as the tracker can tell) is not reported; with the check off, it is."""
+    from services.io.sequence import open_sequence
+    from services.localize.render_match import RMConfig
+
+    renderer, ext, db, _, _ = rm_setup
+    _, out, cam, _ = site_480
+    seq = open_sequence(out / "seq")
+    frames = list(seq)
+    jump = np.linalg.norm(seq.groundtruth_pose(frames[7].stamp).t - seq.groundtruth_pose(frames[4].stamp).t)
+    assert jump > 0.03, jump  # the walk moves enough in three frames to tell
+    for check in (True, False):
+        tr = RenderMatchTracker(renderer, ext, db, RMConfig(innovation_sigmas=4.0 if check else float("inf")))
+        res = [tr.process(f.image, cam, stamp=float(f.stamp)) for f in frames[:4]]
+        assert sum(r.status == Status.TRACKING for r in res) >= 2
+        r = tr.process(frames[7].image, cam, stamp=float(frames[4].stamp))
+        if check:
+            assert r.T_wc is None, r
+        else:
+            assert r.status == Status.TRACKING and r.T_wc is not None
+            assert seq.groundtruth_pose(frames[7].stamp).distance_to(r.T_wc)[0] < 0.02  # the image's own pose

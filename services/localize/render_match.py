@@ -115,6 +115,10 @@ class RMConfig:
     calib_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)  # exposure candidates, x frame interval
     blur_sigma_px: float = 3.75  # a frame blurred more than this (pixels as XFeat sees them: 5 px of a 640-wide frame) has its uncertainty scaled by blur / this
     track_sigma_factor: float = 3.0  # a pose up to this many times less certain than the gate is not reported but tracked from
+    innovation_sigmas: float = 4.0  # a tracked pose further from the constant-velocity prediction than this many sigmas
+    innovation_accel_mps2: float = 20.0  # ... plus this acceleration's a*dt^2/2 is not reported (tracked from, as above):
+    #                                      a wrong XFeat pose, office seed 2 frame 138, 61 inliers, was 5 cm off at a
+    #                                      predicted 0.5 cm, and 5 cm from where the last two tracked frames led
     ransac_min_iterations: int = 100  # while tracking (relocalization keeps poselib's 1000)
     lk_window: int = 15  # patch (pixels at the render's resolution) re-aligning each match by Lucas-Kanade; 0 = off
     lk_max_px: float = 2.0  # a match whose patch lands further than this from its keypoint keeps the keypoint
@@ -249,6 +253,8 @@ class RenderMatchTracker:
         self.T_last: Pose | None = None
         self.stamp_last: float | None = None
         self.motion: tuple[Pose, float] | None = None
+        self.sigma_last: float = 0.0  # the last pose's predicted 1-sigma position uncertainty (m)
+        self.motion_tracked = False  # whether ``motion`` is between two tracked frames
 
     @property
     def exposure_s(self) -> float | None:
@@ -602,6 +608,20 @@ class RenderMatchTracker:
                 and r.reproj_rmse_px <= self.cfg.max_rmse_px * r.px_factor
                 and r.sigma_t_m <= self.cfg.max_sigma_m * coarse * factor and r.sigma_r_deg <= self.cfg.max_sigma_deg * coarse * factor)
 
+    def _consistent(self, r: PnpResult, predicted: Pose | None, dt: float) -> bool:
+        """Whether a tracked pose is where the motion model could have taken the camera: within
+        ``innovation_sigmas`` of the prediction (this pose's uncertainty, and the prediction's: about sqrt(3) x
+        the last pose's, as it extrapolates from two of them) plus a hard acceleration's ``a dt^2 / 2``.
+        Catches a wrong pose whose own uncertainty looks fine (matches that agree on the wrong place)."""
+        if predicted is None:
+            return True
+        sigma = float(np.sqrt(r.sigma_t_m ** 2 + 3.0 * self.sigma_last ** 2))
+        bound = self.cfg.innovation_sigmas * sigma + 0.5 * self.cfg.innovation_accel_mps2 * dt * dt
+        off = float(np.linalg.norm(r.T_wc.t - predicted.t))
+        if off > bound:
+            log.debug("tracked pose %.1f cm from the prediction (bound %.1f cm): not reported", 100 * off, 100 * bound)
+        return off <= bound
+
     def _far(self, T: Pose, kf: Keyframe) -> bool:
         dt, dr = T.distance_to(kf.T_wc)
         return dt > self.cfg.rerender_m or dr > self.cfg.rerender_deg
@@ -693,6 +713,7 @@ class RenderMatchTracker:
         status = Status.TRACKING
         r: PnpResult | None = None
         rerendered = False
+        predicted: Pose | None = None  # where the motion model put this frame, when it had a motion
         if prior is not None and self.T_last is None:
             self.T_last = prior
         if self.T_last is not None:
@@ -702,6 +723,8 @@ class RenderMatchTracker:
             elif fr.motion is not None:  # constant velocity
                 D, dt = fr.motion
                 T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
+            if motion is not None or (fr.motion is not None and self.motion_tracked):
+                predicted = T_pred  # (a motion averaged over a LOST gap is too rough to judge a pose by)
             kf = self.kf
             direct = self.cfg.direct_points > 0
             if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
@@ -766,7 +789,8 @@ class RenderMatchTracker:
             self._lose()
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
                                float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm)
-        if consecutive and status == Status.TRACKING:
+        self.motion_tracked = consecutive and status == Status.TRACKING
+        if self.motion_tracked:
             self.motion = (self.T_last.inverse() @ r.T_wc, stamp - self.stamp_last)
         elif ((status == Status.RELOCALIZED or self.T_last is None) and self.recent is not None and stamp is not None
               and self.recent[1] is not None and 0 < stamp - self.recent[1] <= self.cfg.gap_motion_s):
@@ -778,7 +802,9 @@ class RenderMatchTracker:
             self.motion = None
         T_prev = self.T_last
         self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
-        good = self._good(r)  # else weakly constrained: no pose reported, but tracking continues from it
+        # else weakly constrained, or where the motion cannot have taken it: no pose reported, but tracking continues
+        good = self._good(r) and (status != Status.TRACKING or self._consistent(r, predicted, fr.dt_next))
+        self.sigma_last = r.sigma_t_m
         if good and stamp is not None:
             v = None  # world velocity, from this frame's tracked motion (none if implausibly fast: stamps too close)
             if self.motion is not None and status == Status.TRACKING and consecutive:
