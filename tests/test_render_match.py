@@ -465,3 +465,25 @@ def test_a_pose_the_motion_cannot_reach_is_not_reported(rm_setup, site_480):
         else:
             assert r.status == Status.TRACKING and r.T_wc is not None
             assert seq.groundtruth_pose(frames[7].stamp).distance_to(r.T_wc)[0] < 0.02  # the image's own pose
+
+
+def test_region_of_interest_keeps_to_the_stations_heights():
+    """A rack whose footprint shows no floor (the scanner saw only its top) must not get positions on its top."""
+    from services.geometry.se3 import Pose
+    from services.io.scan import Scan
+    from services.relocalize.roi import RoiConfig, sample_positions
+
+    g = np.arange(0.0, 8.0, 0.04)
+    fx, fy = np.meshgrid(g, g)
+    floor = np.column_stack([fx.ravel(), fy.ravel(), np.zeros(fx.size)])
+    floor = floor[~((floor[:, 0] > 5) & (floor[:, 1] > 5))]  # under the rack: no floor point
+    t = np.arange(5.0, 8.0, 0.04)
+    tx, ty = np.meshgrid(t, t)
+    top = np.column_stack([tx.ravel(), ty.ravel(), np.full(tx.size, 3.0)])  # the rack's top, 3 m up
+    xyz = np.vstack([floor, top])
+    station = Pose.from_tum(np.array([2.0, 2.0, 1.6, 0, 0, 0, 1.0]))
+    scan = Scan(xyz, np.full(xyz.shape, 128, np.uint8), stations=[station])
+    loose = sample_positions(scan, RoiConfig(spacing=1.0, station_dz=float("inf")))
+    assert (loose[:, 2] > 4).any()  # without the rule: positions 1.5 m above the rack's top
+    kept = sample_positions(scan, RoiConfig(spacing=1.0))
+    assert len(kept) and (kept[:, 2] < 2).all() and len(kept) == (loose[:, 2] < 2).sum()

@@ -4,7 +4,8 @@ Default region: derived from the scan itself. A grid of (x, y) positions at ``sp
 scan's footprint; at each, the floor is the lowest scan point nearby and the candidate sits at
 typical camera heights above it; a candidate is kept when it is at least ``margin`` from every
 scan point (free space) and, when the scan knows its stations, in the line of sight of one (so
-it is inside scanned space, not inside a closed cabinet). A box (x, y, z ranges) or a polygon (a
+it is inside scanned space, not inside a closed cabinet) and at a height a station stood at (so not on top of a
+rack whose column shows no floor: in the simulated warehouse three positions stood 9.5 m up, on the 8 m racks). A box (x, y, z ranges) or a polygon (a
 floor-plan outline in world x, y; heights still above the local floor) may restrict it. Shared by the relocalization database and the Prebuild & Localize map builder.
 """
 
@@ -29,6 +30,9 @@ class RoiConfig:
     margin: float = 0.5  # free space around each position
     box: tuple[float, float, float, float, float, float] | None = None  # x0 y0 z0 x1 y1 z1 (world); heights ignored
     polygon: tuple[tuple[float, float], ...] | None = None  # floor-plan outline (world x, y), >= 3 vertices
+    station_dz: float = 2.0  # when the scan knows its stations: a position further above or below every station's
+    #                          height than this is not where a camera goes (the top of a rack, a shelf); each floor
+    #                          of a building scanned from stations on it keeps its positions
 
     def __post_init__(self) -> None:
         if self.spacing <= 0 or self.margin < 0:
@@ -91,6 +95,8 @@ def sample_positions(scan: Scan, cfg: RoiConfig = RoiConfig()) -> np.ndarray:
     keep = d >= cfg.margin
     if scan.stations:
         stations = np.array([s.t - scan.origin for s in scan.stations])
+        if cfg.box is None:
+            keep &= np.abs(cand[:, 2:3] - stations[None, :, 2]).min(1) <= cfg.station_dz
         keep &= np.array([_visible(tree, c, stations) if k else False for c, k in zip(cand, keep)])
     out = cand[keep] + scan.origin
     log.info("region of interest: %d of %d grid positions in free space (spacing %.2f m)", len(out), len(cand), cfg.spacing)
