@@ -4,9 +4,10 @@ Default region: derived from the scan itself. A grid of (x, y) positions at ``sp
 scan's footprint; at each, the floor is the lowest scan point nearby and the candidate sits at
 typical camera heights above it; a candidate is kept when it is at least ``margin`` from every
 scan point (free space) and, when the scan knows its stations, in the line of sight of one (so
-it is inside scanned space, not inside a closed cabinet) and at a height a station stood at (so not on top of a
-rack whose column shows no floor: in the simulated warehouse three positions stood 9.5 m up, on the 8 m racks). A box (x, y, z ranges) or a polygon (a
-floor-plan outline in world x, y; heights still above the local floor) may restrict it. Shared by the relocalization database and the Prebuild & Localize map builder.
+it is inside scanned space, not inside a closed cabinet) and within ``station_dz`` in height of a
+station (not on top of a rack whose footprint shows no floor: the simulated warehouse had 3-5 positions
+9.5 m up, on its 8 m racks). A box (x, y, z ranges) or a polygon (a floor-plan outline in world x, y;
+heights still above the local floor) may restrict it. Shared by the relocalization database and the Prebuild & Localize map builder.
 """
 
 from __future__ import annotations
