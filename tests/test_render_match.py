@@ -297,6 +297,36 @@ def test_gates_promise_the_accuracy_and_scale_for_coarse_cameras():
     assert not tr._good(r)
 
 
+def test_a_feature_pose_and_a_direct_pose_combine_by_their_covariances():
+    """Two estimates of one pose (XFeat's and direct alignment's from it) combine by their information: the
+    result lies between them, nearer the more certain one, and is more certain than either. Estimates that
+    disagree beyond their covariances carry the disagreement: the gate then refuses the combination."""
+    from services.geometry.pnp import PnpResult
+    from services.geometry.se3 import Pose
+    from services.localize.render_match import _fuse
+
+    T = Pose.from_rotvec_t([0.1, -0.4, 0.2], [2.0, 1.0, 1.5])
+    C = np.diag([0.004 ** 2] * 3 + [np.radians(0.08) ** 2] * 3)  # 4 mm, 0.08 deg
+
+    def moved(d):  # T perturbed on the right by d = (translation, rotation) in camera axes
+        return Pose(T.R @ Pose.from_rotvec_t(d[3:], np.zeros(3)).R, T.t + T.R @ np.asarray(d[:3]))
+
+    d = np.array([0.006, 0.0, 0.0, 0.0, np.radians(0.05), 0.0])
+    a = PnpResult(T, np.ones(300, bool), 0.9, 10, C)
+    b = PnpResult(moved(d), np.ones(120, bool), 0.5, 0, 3 * C)
+    f = _fuse(a, b)
+    off = T.R.T @ (f.T_wc.t - T.t)
+    assert np.allclose(off, [0.0015, 0, 0], atol=1e-6)  # a quarter of the way: information 1 : 1/3
+    assert np.isclose(np.degrees(Pose(T.R.T @ f.T_wc.R, np.zeros(3)).rotvec()[1]), 0.0125, atol=1e-4)
+    assert f.sigma_t_m < a.sigma_t_m and f.n_inliers == 300 and f.reproj_rmse_px == 0.9
+
+    tr = RenderMatchTracker(renderer=None, extractor=None)
+    for r in (a, b):
+        r.px_deg = 0.116
+    far = PnpResult(moved(np.array([0.05, 0, 0, 0, 0, 0])), np.ones(120, bool), 0.5, 0, 3 * C, px_deg=0.116)
+    assert tr._good(a) and tr._good(_fuse(a, b)) and not tr._good(_fuse(a, far))  # 5 cm apart at 4-7 mm
+
+
 def test_blurred_keyframe_features_are_reused_while_the_motion_is_alike(rm_setup):
     from services.geometry.se3 import Pose
     from services.localize.render_match import RMConfig, _Frame
