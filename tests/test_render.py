@@ -343,6 +343,11 @@ def test_render_order_is_kept_with_the_scan_cache_and_survives_a_bad_file(tmp_pa
     np.testing.assert_array_equal(first.xyz, third.xyz)
     assert "another scan" in caplog.text
     assert np.load(kept[0]).shape == (len(scan),)  # and rewritten
+    from services.io.decimate import random_decimate
+
+    half = random_decimate(load_scan(tmp_path / "room.ply"), 0.5)  # a decimated scan keeps no order in the file's cache
+    prepare_cloud(half, chunk=1024)
+    assert "cache_dir" not in half.meta and np.load(kept[0]).shape == (len(scan),)
 
 
 def test_morton_codes_interleave_the_grid_cells_bits():

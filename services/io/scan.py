@@ -54,4 +54,7 @@ class Scan:
         return self.xyz.min(axis=0).astype(np.float64) + self.origin, self.xyz.max(axis=0).astype(np.float64) + self.origin
 
     def subset(self, index: np.ndarray) -> "Scan":
-        return Scan(self.xyz[index], self.rgb[index], self.origin.copy(), list(self.stations), self.source, dict(self.meta))
+        """The points at ``index``; its meta no longer names the file's cache (a decimated scan kept its render order
+        there, over the full scan's, which the next full load then recomputed)."""
+        meta = {k: v for k, v in self.meta.items() if k not in ("cache_dir", "from_cache")}
+        return Scan(self.xyz[index], self.rgb[index], self.origin.copy(), list(self.stations), self.source, meta)
