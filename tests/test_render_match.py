@@ -517,3 +517,26 @@ def test_region_of_interest_keeps_to_the_stations_heights():
     assert (loose[:, 2] > 4).any()  # without the rule: positions 1.5 m above the rack's top
     kept = sample_positions(scan, RoiConfig(spacing=1.0))
     assert len(kept) and (kept[:, 2] < 2).all() and len(kept) == (loose[:, 2] < 2).sum()
+
+
+def test_calibrate_recovers_a_wrong_focal_length_and_principal_point(rm_setup, site_480, tmp_path, capsys):
+    """`cristal calibrate` against the scan: a camera 2 % off in focal length and 4 px off in principal point
+    comes back within 0.5 % / 1.5 px of the simulator's true intrinsics; the lens distortion is kept."""
+    import dataclasses
+
+    from services.cli import main
+    from services.geometry.camera import Camera
+
+    _, _, _, _, db_path = rm_setup
+    root, out, cam, _ = site_480
+    wrong = dataclasses.replace(cam, fx=cam.fx * 1.02, fy=cam.fy * 1.02, cx=cam.cx + 4.0)
+    wrong.save(tmp_path / "wrong.json")
+    assert main(["-q", "calibrate", str(root / "scan.ply"), str(out / "seq"), "--db", str(db_path),
+                 "--camera", str(tmp_path / "wrong.json"), "--out", str(tmp_path / "cal.json"), "--every", "1"]) == 0
+    got = Camera.load(tmp_path / "cal.json")
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    print(f"calibrated fx {got.fx:.2f} (true {cam.fx:.2f}, given {wrong.fx:.2f}), cx {got.cx:.2f} (true {cam.cx:.2f}), "
+          f"{summary['frames']} frames, {summary['points']} points, {summary['rms_px']:.2f} px")
+    assert abs(got.fx / cam.fx - 1) < 0.005 and abs(got.fy / cam.fy - 1) < 0.005, (got, cam)
+    assert abs(got.cx - cam.cx) < 1.5 and abs(got.cy - cam.cy) < 1.5, (got, cam)
+    assert got.distortion == cam.distortion and summary["frames"] >= 4

@@ -736,6 +736,20 @@ class RenderMatchTracker:
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
         return None if rival else r
 
+    def correspondences(self, image: np.ndarray, camera: Camera, T_wc: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's 2D-3D correspondences against the scan rendered at ``T_wc`` with ``camera``: (uv (N, 2)
+        frame pixels, X (N, 3) world points), every mutual XFeat match re-aligned by Lucas-Kanade, outliers
+        included (calibration: services.localize.calibrate)."""
+        fr = _Frame(image, camera, {}, None, 0.0, None)
+        kf = self._keyframe(T_wc, fr)
+        feats, xyz, gray = self._sharp_points(kf, fr)
+        live = self._live(fr, kf.scale)
+        m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos)
+        uv, X = live.kpts[m[:, 0]].astype(np.float64), xyz[m[:, 1]]
+        if gray is not None and len(m):
+            uv, X = self._refine(fr, uv, X, feats.kpts[m[:, 1]], gray)
+        return uv, X
+
     # ---- the frame loop --------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, stamp: float | None = None,
                 exposure_s: float | None = None, motion: Pose | None = None) -> FrameResult:
