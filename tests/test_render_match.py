@@ -521,7 +521,8 @@ def test_region_of_interest_keeps_to_the_stations_heights():
 
 def test_calibrate_recovers_a_wrong_focal_length_and_principal_point(rm_setup, site_480, tmp_path, capsys):
     """`cristal calibrate` against the scan: a camera 2 % off in focal length and 4 px off in principal point
-    comes back within 0.5 % / 1.5 px of the simulator's true intrinsics; the lens distortion is kept."""
+    comes back within 0.5 % / 1.5 px of the simulator's true intrinsics, the lens distortion kept; a distorted
+    lens given as a pinhole gets its k1 back with --distortion."""
     import dataclasses
 
     from services.cli import main
@@ -540,3 +541,11 @@ def test_calibrate_recovers_a_wrong_focal_length_and_principal_point(rm_setup, s
     assert abs(got.fx / cam.fx - 1) < 0.005 and abs(got.fy / cam.fy - 1) < 0.005, (got, cam)
     assert abs(got.cx - cam.cx) < 1.5 and abs(got.cy - cam.cy) < 1.5, (got, cam)
     assert got.distortion == cam.distortion and summary["frames"] >= 4
+    # a lens taken for a pinhole: k1, k2 come back with --distortion
+    pinhole = dataclasses.replace(cam, distortion=(0.0, 0.0, 0.0, 0.0, 0.0))
+    pinhole.save(tmp_path / "pinhole.json")
+    assert main(["-q", "calibrate", str(root / "scan.ply"), str(out / "seq"), "--db", str(db_path), "--distortion",
+                 "--camera", str(tmp_path / "pinhole.json"), "--out", str(tmp_path / "cal2.json"), "--every", "1"]) == 0
+    got = Camera.load(tmp_path / "cal2.json")
+    print(f"calibrated distortion {got.distortion[:2]} (true {cam.distortion[:2]}), fx {got.fx:.2f}")
+    assert abs(got.distortion[0] - cam.distortion[0]) < 0.03 and abs(got.fx / cam.fx - 1) < 0.01, (got, cam)

@@ -45,13 +45,15 @@ class CalibrationResult:
 
 
 def fit_intrinsics(pairs: list[tuple[np.ndarray, np.ndarray]], camera: Camera, ransac_px: float = 2.0,
-                   min_inliers: int = 30, iterations: int = 8) -> tuple[Camera, int, int, float]:
+                   min_inliers: int = 30, iterations: int = 8, distortion: bool = False) -> tuple[Camera, int, int, float]:
     """fx, fy, cx, cy fitted to per-frame correspondences ``pairs`` = [(uv (N, 2) distorted pixels, X (N, 3) world
-    points)], starting from ``camera`` (its distortion is kept). Alternates each frame's PnP-RANSAC inliers under
-    the current estimate with a joint fit; returns (camera, frames used, inliers, RMSE px)."""
+    points)], starting from ``camera`` (its distortion is kept, or with ``distortion`` k1 and k2 fitted too).
+    Alternates each frame's PnP-RANSAC inliers under the current estimate with a joint fit; returns (camera,
+    frames used, inliers, RMSE px)."""
     cam, used, n, rms = camera, 0, 0, float("nan")
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
-             | cv2.CALIB_FIX_TANGENT_DIST)
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_TANGENT_DIST
+    if not distortion:
+        flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
     for _ in range(iterations):
         obj, img = [], []
         for uv, X in pairs:
@@ -61,10 +63,13 @@ def fit_intrinsics(pairs: list[tuple[np.ndarray, np.ndarray]], camera: Camera, r
                 img.append(np.ascontiguousarray(uv[r.inliers], np.float32))
         if len(obj) < 2:
             raise ValueError(f"{len(obj)} frames with {min_inliers} inliers: too few to calibrate from")
-        rms, K, _, _, _ = cv2.calibrateCamera(obj, img, (cam.width, cam.height), cam.K.astype(np.float64).copy(),
-                                              np.asarray(cam.dist, np.float64).copy(), flags=flags)
-        new = dataclasses.replace(cam, fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]))
-        moved = max(abs(new.fx - cam.fx), abs(new.fy - cam.fy), abs(new.cx - cam.cx), abs(new.cy - cam.cy))
+        rms, K, D, _, _ = cv2.calibrateCamera(obj, img, (cam.width, cam.height), cam.K.astype(np.float64).copy(),
+                                              np.asarray(cam.dist, np.float64).reshape(-1).copy(), flags=flags)
+        D = np.asarray(D, float).ravel()
+        new = dataclasses.replace(cam, fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+                                  distortion=tuple(float(x) for x in D[:5]) if distortion else cam.distortion)
+        moved = max(abs(new.fx - cam.fx), abs(new.fy - cam.fy), abs(new.cx - cam.cx), abs(new.cy - cam.cy),
+                    1e3 * max(abs(a - b) for a, b in zip(new.distortion, cam.distortion)))
         cam, used, n = new, len(obj), sum(len(o) for o in obj)
         if moved < 0.01:
             break
@@ -72,15 +77,15 @@ def fit_intrinsics(pairs: list[tuple[np.ndarray, np.ndarray]], camera: Camera, r
 
 
 def calibrate(track: Callable[[Camera], Iterable[tuple[np.ndarray, np.ndarray]]], camera: Camera, rounds: int = 2,
-              ransac_px: float = 2.0) -> CalibrationResult:
+              ransac_px: float = 2.0, distortion: bool = False) -> CalibrationResult:
     """Refine ``camera`` over ``rounds`` of: ``track(camera)`` (the sequence localized with that camera, yielding
-    each chosen frame's correspondences) and :func:`fit_intrinsics`."""
+    each chosen frame's correspondences) and :func:`fit_intrinsics` (``distortion``: k1, k2 too)."""
     out = CalibrationResult(camera, 0, 0, float("nan"))
     for k in range(rounds):
         pairs = [p for p in track(out.camera) if len(p[0]) >= 6]
-        cam, used, n, rms = fit_intrinsics(pairs, out.camera, ransac_px)
-        out.rounds.append({"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "frames": used, "points": n,
-                           "rms_px": rms})
+        cam, used, n, rms = fit_intrinsics(pairs, out.camera, ransac_px, distortion=distortion)
+        out.rounds.append({"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "distortion": list(cam.distortion),
+                           "frames": used, "points": n, "rms_px": rms})
         log.info("calibration round %d/%d: fx %.2f fy %.2f cx %.2f cy %.2f from %d frames, %d points, %.2f px",
                  k + 1, rounds, cam.fx, cam.fy, cam.cx, cam.cy, used, n, rms)
         out.camera, out.frames, out.points, out.rms_px = cam, used, n, rms

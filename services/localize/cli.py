@@ -86,6 +86,7 @@ def register(sub) -> None:
     c.add_argument("--every", type=int, default=10, help="use every N-th localized frame (default 10)")
     c.add_argument("--frames", type=int, help="only the first N frames")
     c.add_argument("--rounds", type=int, default=2, help="track-and-fit rounds (default 2)")
+    c.add_argument("--distortion", action="store_true", help="fit the radial distortion k1, k2 too (else kept as given)")
     c.add_argument("--device", default="auto")
     c.set_defaults(func=run_calibrate)
 
@@ -138,15 +139,16 @@ def run_calibrate(args) -> int:
                     yield tr.correspondences(f.image, camera, r.T_wc)
 
     try:
-        res = calibrate(track, seq.camera, rounds=args.rounds)
+        res = calibrate(track, seq.camera, rounds=args.rounds, distortion=args.distortion)
     except ValueError as e:
         raise CliError(f"cannot calibrate: {e} (localize more of the sequence: check --db, or use --every 1)") from e
     with atomic_write(args.out) as fh:
         fh.write(json.dumps(res.camera.to_dict(), indent=2).encode())
     c0, c1 = seq.camera, res.camera
     print(f"fx {c0.fx:.2f} -> {c1.fx:.2f}, fy {c0.fy:.2f} -> {c1.fy:.2f}, cx {c0.cx:.2f} -> {c1.cx:.2f}, "
-          f"cy {c0.cy:.2f} -> {c1.cy:.2f} from {res.frames} frames, {res.points} correspondences, {res.rms_px:.2f} px RMSE")
-    print(json.dumps({"out": str(args.out), "fx": c1.fx, "fy": c1.fy, "cx": c1.cx, "cy": c1.cy, "frames": res.frames,
+          f"cy {c0.cy:.2f} -> {c1.cy:.2f}, distortion {list(c0.distortion)} -> {[round(x, 4) for x in c1.distortion]} from {res.frames} frames, {res.points} correspondences, {res.rms_px:.2f} px RMSE")
+    print(json.dumps({"out": str(args.out), "fx": c1.fx, "fy": c1.fy, "cx": c1.cx, "cy": c1.cy,
+                      "distortion": list(c1.distortion), "frames": res.frames,
                       "points": res.points, "rms_px": res.rms_px, "rounds": res.rounds}))
     return 0
 
