@@ -98,7 +98,9 @@ CAL_EPILOG = """examples:
 Each round localizes the sequence with the camera as estimated so far, collects XFeat correspondences
 (frame pixel <-> scan point) on every N-th localized frame and fits fx, fy, cx, cy to all of them.
 Prints each round's camera and fit, ends with a one-line JSON summary. The frames should see the
-scan at several depths and fill the view (a walk through the site, not a wall).
+scan at several depths and fill the view (a walk through the site, not a wall). Use the result
+everywhere the camera is named: the frames' camera.json, 'cristal prebuild --camera' (a P&L map is
+built for one camera), and the intrinsics a client sends with its frames.
 """
 
 
