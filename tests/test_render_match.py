@@ -549,3 +549,25 @@ def test_calibrate_recovers_a_wrong_focal_length_and_principal_point(rm_setup, s
     got = Camera.load(tmp_path / "cal2.json")
     print(f"calibrated distortion {got.distortion[:2]} (true {cam.distortion[:2]}), fx {got.fx:.2f}")
     assert abs(got.distortion[0] - cam.distortion[0]) < 0.03 and abs(got.fx / cam.fx - 1) < 0.01, (got, cam)
+
+
+def test_localize_flags_frames_that_disagree_with_their_camera(rm_setup, site_480, tmp_path, capsys):
+    """After localizing, `cristal localize` fits the intrinsics the frames imply: consistent for the simulator's
+    camera, flagged (with the numbers in the summary) for one 2 % off in focal length and 4 px in principal point."""
+    import dataclasses
+    import shutil
+
+    from services.cli import main
+
+    _, _, _, _, db_path = rm_setup
+    root, out, cam, _ = site_480
+    shutil.copytree(out / "seq", tmp_path / "wrong")
+    dataclasses.replace(cam, fx=cam.fx * 1.02, fy=cam.fy * 1.02, cx=cam.cx + 4.0).save(tmp_path / "wrong" / "camera.json")
+    checks = {}
+    for name, seq in (("right", out / "seq"), ("wrong", tmp_path / "wrong")):
+        assert main(["-q", "localize", str(root / "scan.ply"), str(seq), "--db", str(db_path), "--out",
+                     str(tmp_path / f"{name}.txt")]) == 0
+        checks[name] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["camera_check"]
+    print(checks)
+    assert checks["right"]["ok"] and checks["right"]["focal_off"] < 0.006
+    assert not checks["wrong"]["ok"] and checks["wrong"]["focal_off"] > 0.01

@@ -70,6 +70,9 @@ def register(sub) -> None:
                         "aligning the frame to patches straight from the prediction first: slower; for comparisons")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="(--method rm) the same for the camera centre, in centimetres (default 1)")
+    p.add_argument("--no-camera-check", action="store_true",
+                   help="(--method rm) skip the check, after localizing, that the frames agree with their camera.json "
+                        "(a fit of the intrinsics on up to 12 localized frames; a few seconds)")
     p.set_defaults(func=run_localize)
 
     c = sub.add_parser("calibrate", help="refine a camera's intrinsics (fx, fy, cx, cy) against the scan",
@@ -225,4 +228,30 @@ def run_localize(args) -> int:
     cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
                    direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points)
     tracker = RenderMatchTracker(renderer, XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side), db, cfg)
-    return localize_and_report(tracker, seq, args, args.method, stamped=True)
+    return localize_and_report(tracker, seq, args, args.method, stamped=True,
+                               after=None if getattr(args, "no_camera_check", False) else lambda traj: _camera_check(tracker, seq, traj))
+
+
+def _camera_check(tracker, seq, traj) -> dict:
+    """Do the frames agree with their camera.json? (services.localize.calibrate.check_camera)"""
+    import logging
+
+    from services.localize.calibrate import check_camera
+
+    try:
+        c = check_camera(tracker, seq, traj)
+    except ValueError as e:
+        print(f"camera check: not done ({e})")
+        return {"camera_check": None}
+    cam = seq.camera
+    line = (f"camera check: the frames imply fx {c['fx']:.1f} fy {c['fy']:.1f} cx {c['cx']:.1f} cy {c['cy']:.1f} "
+            f"(given {cam.fx:.1f} {cam.fy:.1f} {cam.cx:.1f} {cam.cy:.1f}; {c['frames']} frames, {c['points']} points)")
+    if c["ok"]:
+        print(line + ": consistent")
+    else:
+        print(line)
+        logging.getLogger("cristal").warning(
+            "the camera's intrinsics look wrong (focal length %.1f %% off, principal point %.1f px): poses absorb this "
+            "unseen (1 %% of focal length cost 4 cm on the office walk); run 'cristal calibrate'",
+            100 * c["focal_off"], c["centre_off_px_at_640"])
+    return {"camera_check": c}

@@ -39,8 +39,9 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     return traj, counts, stage, time.perf_counter() - t0
 
 
-def localize_and_report(loc, seq, args, method: str, stamped: bool = False) -> int:
-    """``cristal localize``'s output contract for either method; exit code 0 when any frame got a pose."""
+def localize_and_report(loc, seq, args, method: str, stamped: bool = False, after=None) -> int:
+    """``cristal localize``'s output contract for either method; exit code 0 when any frame got a pose.
+    ``after(traj) -> dict``: a check run on the trajectory once timed (its fields join the summary)."""
     from services.cli import emit_summary
     from services.io.trajectory import write_tum
     from services.localize.status import Status
@@ -59,5 +60,7 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False) -> i
         line, fields = ape_first_frames(seq.groundtruth, traj, n)
         print(line)
         summary.update(fields)
+    if after is not None and len(traj):
+        summary.update(after(traj))
     emit_summary(summary)
     return 0 if len(traj) else 1
