@@ -116,6 +116,7 @@ def run_calibrate(args) -> int:
     from services.io.sequence import open_sequence
     from services.localize.calibrate import calibrate
     from services.localize.render_match import RenderMatchTracker, RMConfig
+    from services.localize.runner import _seconds
     from services.log import progress
     from services.relocalize.database import RelocDB
     from services.render.renderer import Renderer
@@ -137,7 +138,7 @@ def run_calibrate(args) -> int:
         for i, f in enumerate(progress(seq, "calibrating", total=n, unit="frame")):
             if i >= n:
                 break
-            r = tr.process(f.image, camera, stamp=float(f.stamp) if f.stamp else None)
+            r = tr.process(f.image, camera, stamp=_seconds(f.stamp))
             if r.T_wc is not None:
                 k += 1
                 if k % args.every == 1 or args.every == 1:
@@ -151,7 +152,8 @@ def run_calibrate(args) -> int:
         fh.write(json.dumps(res.camera.to_dict(), indent=2).encode())
     c0, c1 = seq.camera, res.camera
     print(f"fx {c0.fx:.2f} -> {c1.fx:.2f}, fy {c0.fy:.2f} -> {c1.fy:.2f}, cx {c0.cx:.2f} -> {c1.cx:.2f}, "
-          f"cy {c0.cy:.2f} -> {c1.cy:.2f}, distortion {list(c0.distortion)} -> {[round(x, 4) for x in c1.distortion]} from {res.frames} frames, {res.points} correspondences, {res.rms_px:.2f} px RMSE")
+          f"cy {c0.cy:.2f} -> {c1.cy:.2f}, distortion {list(c0.distortion)} -> {[round(x, 4) for x in c1.distortion]} "
+          f"from {res.frames} frames, {res.points} correspondences, {res.rms_px:.2f} px RMSE")
     print(json.dumps({"out": str(args.out), "fx": c1.fx, "fy": c1.fy, "cx": c1.cx, "cy": c1.cy,
                       "distortion": list(c1.distortion), "frames": res.frames,
                       "points": res.points, "rms_px": res.rms_px, "rounds": res.rounds}))
