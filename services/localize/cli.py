@@ -89,7 +89,7 @@ def register(sub) -> None:
     c.add_argument("--every", type=int, default=10, help="use every N-th localized frame (default 10)")
     c.add_argument("--frames", type=int, help="only the first N frames")
     c.add_argument("--rounds", type=int, default=2, help="track-and-fit rounds (default 2)")
-    c.add_argument("--distortion", action="store_true", help="fit the radial distortion k1, k2 too (else kept as given)")
+    c.add_argument("--distortion", action="store_true", help="fit the radial distortion k1 too (k2 and the rest kept as given)")
     c.add_argument("--device", default="auto")
     c.set_defaults(func=run_calibrate)
 
@@ -147,7 +147,8 @@ def run_calibrate(args) -> int:
     try:
         res = calibrate(track, seq.camera, rounds=args.rounds, distortion=args.distortion)
     except ValueError as e:
-        raise CliError(f"cannot calibrate: {e} (localize more of the sequence: check --db, or use --every 1)") from e
+        raise CliError(f"cannot calibrate: {e}. Localize more of the sequence (check --db; --every 1; a starting "
+                       f"camera nearer the truth)") from e
     with atomic_write(args.out) as fh:
         fh.write(json.dumps(res.camera.to_dict(), indent=2).encode())
     c0, c1 = seq.camera, res.camera
