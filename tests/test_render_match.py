@@ -184,14 +184,24 @@ def test_region_of_interest_polygon_and_box(small_site):
         RoiConfig(polygon=((0, 0), (1, 1)))
 
 
-def _twin(db, shift):
-    """``db`` and a copy of it moved by ``shift``: a site made of two identical places."""
+def _twin(db, shift, keep: float = 1.0):
+    """``db`` and a copy of it moved by ``shift`` (or one copy per row of it): a site made of identical places
+    (``keep`` < 1: each copy keeps that share of each view's features, a look-alike rather than a twin)."""
     from services.relocalize.database import RelocDB
 
-    return RelocDB(np.concatenate([db.view_poses, db.view_poses + np.r_[shift, 0, 0, 0, 0]]),
-                   np.concatenate([db.view_start, db.view_start[1:] + db.view_start[-1]]),
-                   np.concatenate([db.xyz, db.xyz + shift]), np.concatenate([db.desc, db.desc]),
-                   np.concatenate([db.vlad, db.vlad]), db.vocab, dict(db.meta))
+    rng = np.random.default_rng(1)
+    poses, starts, xyz, desc, vlad = [db.view_poses], list(db.view_start), [db.xyz], [db.desc], [db.vlad]
+    for sh in np.atleast_2d(shift):
+        poses.append(db.view_poses + np.r_[sh, 0, 0, 0, 0])
+        vlad.append(db.vlad)
+        for v in range(db.n_views):
+            X, D = db.view(v)
+            sel = rng.random(len(X)) < keep
+            xyz.append(X[sel] + sh)
+            desc.append(D[sel])
+            starts.append(starts[-1] + int(sel.sum()))
+    return RelocDB(np.concatenate(poses), np.array(starts, np.int64), np.concatenate(xyz), np.concatenate(desc),
+                   np.concatenate(vlad), db.vocab, dict(db.meta))
 
 
 def test_relocalization_refuses_an_ambiguous_place(rm_setup):
@@ -238,6 +248,29 @@ def test_tracker_refuses_a_twin_place_and_a_pose_beyond_reach(rm_setup):
     ok = tr._relocalize(fr(), None, (G7.t + [0.2, 0, 0], 0.5))
     assert ok is not None and G7.distance_to(ok.T_wc)[0] < 0.05
     assert tr._relocalize(fr(), None, (G7.t + [2.0, 0, 0], 0.5)) is None
+
+
+def test_a_cold_frame_needs_a_clear_margin_over_look_alikes_elsewhere(rm_setup):
+    """With no recent pose, two places 10 and 20 m away that each fit the frame 60 % as well (aisles of racks like
+    this one) make it ambiguous: the simulated warehouse's cold start matched a wrong aisle 12.8 m off with 39
+    inliers against six places' 20-23, verified it, and searched near it for 30 s. One such place alone can be a
+    chance solution, and a moment after a reported pose the search is within reach: the frame relocalizes."""
+    from services.localize.render_match import _Frame
+
+    renderer, ext, db, seq, _ = rm_setup
+    f7, G7 = seq.read(7), seq.groundtruth.poses[7]
+
+    def cold(site, cfg=RMConfig()):
+        r = RenderMatchTracker(renderer, ext, site, cfg).process(f7.image, seq.camera)
+        return r.status == Status.RELOCALIZED and G7.distance_to(r.T_wc)[0] < 0.05
+
+    aisles = _twin(db, np.array([[10.0, 0.0, 0.0], [20.0, 0.0, 0.0]]), keep=0.6)
+    assert cold(db)  # the real site: one place
+    assert cold(_twin(db, np.array([10.0, 0.0, 0.0]), keep=0.6))  # one look-alike: could be chance
+    assert not cold(aisles)
+    assert cold(aisles, RMConfig(reloc_cold_ambiguity=0.8))  # the look-alikes are the reason
+    near = RenderMatchTracker(renderer, ext, aisles)._relocalize(_Frame(f7.image, seq.camera, {}, None, 0.0, None), (G7.t, 4.0))
+    assert near is not None and G7.distance_to(near.T_wc)[0] < 0.05
 
 
 def test_lucas_kanade_moves_matches_onto_the_true_correspondence(small_site):

@@ -99,7 +99,12 @@ class RMConfig:
     reloc_verify: int = 2  # verify at most this many places per frame (the best-matching first) ...
     reloc_rival_verify: float = 0.5  # ... and, once one passed, the next when it has this fraction of its coarse inliers:
     #                                  two verified places are a repetitive site (identical rack bays 2 m apart)
-    reloc_ambiguity: float = 0.8  # another place with this fraction of the best's inliers makes a relocalization ambiguous
+    reloc_ambiguity: float = 0.8  # another place with this fraction of the best's inliers makes a relocalization ambiguous ...
+    reloc_cold_ambiguity: float = 0.5  # ... or, when nothing says where the camera is (no recent pose), two places over
+    #                                    2 m away with this fraction: a repetitive site (a cold warehouse frame matched a
+    #                                    wrong aisle 12.8 m off with 39 inliers against six places' 20-23, verified it, 89
+    #                                    inliers to the true place's 78, then searched near it for 30 s). One such place
+    #                                    can be a chance solution (a small office: 28 against 55, turned 180 deg)
     max_speed_mps: float = 3.0  # a relocalization within anchor_s of the last reported pose searches only views this
     anchor_s: float = 30.0  # ... fast a camera could have got to (+1 m): no jumping to an identical aisle 40 m away
     max_accel_mps2: float = 3.0  # ... and, when its velocity then is known, accepts only a pose this close to where that
@@ -702,14 +707,15 @@ class RenderMatchTracker:
         reach = reach or near
         # a weak coarse pose is verified only where the camera cannot have reached a look-alike place
         need = cfg.reloc_weak_inliers if reach is not None and reach[1] <= cfg.reloc_weak_reach_m else cfg.reloc_min_inliers
-        floor = min(need, int(cfg.reloc_ambiguity * cfg.reloc_min_inliers))  # rivals may be weaker than the best
+        ambiguity, far = cfg.reloc_ambiguity, (cfg.reloc_cold_ambiguity if near is None else None)
+        floor = min(need, int(min(ambiguity, far or ambiguity) * cfg.reloc_min_inliers))  # rivals may be weaker than the best
         within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
         hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
             return None
-        if self.db.ambiguous(hyps, cfg.reloc_ambiguity):
+        if self.db.ambiguous(hyps, ambiguity, far):
             return None
         found: tuple[PnpResult, PnpResult, Keyframe] | None = None  # (coarse, verified, its keyframe)
         for coarse, _ in hyps[:cfg.reloc_verify]:
@@ -732,7 +738,7 @@ class RenderMatchTracker:
         t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
         check = max(cfg.reloc_check, int(np.ceil(cfg.reloc_check_fraction * self.db.n_views)))
         rival = self.db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
-                                  ambiguity=cfg.reloc_ambiguity, near=near, within=within)
+                                  ambiguity=ambiguity, near=near, within=within, far_ambiguity=far)
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
         return None if rival else r
 

@@ -34,6 +34,8 @@ __all__ = ["RelocDB", "DBConfig", "build_database", "DB_FORMAT_VERSION"]
 
 log = logging.getLogger(__name__)
 DB_FORMAT_VERSION = 1
+FAR_M = 2.0  # a rival place this far away is another place, not a coarse pose of the same one (one face's PnP: <= 1.5 m off)
+FAR_RIVALS = 2  # this many look-alike places (``far_ambiguity``) make a repetitive site; one can be a chance solution
 
 
 @dataclass(frozen=True)
@@ -145,13 +147,15 @@ class RelocDB:
         return places
 
     @staticmethod
-    def ambiguous(hyps: list[tuple[PnpResult, int]], ambiguity: float = 0.8) -> bool:
-        """Whether the second place of ``hypotheses`` fits about as well as the first (``ambiguity`` x its inliers)."""
-        return len(hyps) > 1 and RelocDB._rival_in(hyps[0][0], hyps[0][1], hyps[1:2], ambiguity)
+    def ambiguous(hyps: list[tuple[PnpResult, int]], ambiguity: float = 0.8, far_ambiguity: float | None = None) -> bool:
+        """Whether another place of ``hypotheses`` fits about as well as the first (``ambiguity`` x its inliers), or,
+        with ``far_ambiguity``, ``FAR_RIVALS`` places more than ``FAR_M`` away fit with that share of them."""
+        return len(hyps) > 1 and RelocDB._rival_in(hyps[0][0], hyps[0][1], hyps[1:], ambiguity, far_ambiguity)
 
     def has_rival(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
                   max_error_px: float = 3.0, ambiguity: float = 0.8,
-                  near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None) -> bool:
+                  near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None,
+                  far_ambiguity: float | None = None) -> bool:
         """Whether views ranked ``skip``..``check`` for this query hold another place that fits it about as
         well as ``best``. In the simulated warehouse the true aisle ranked outside the top 8 twice, and a
         wrong aisle 24-30 m away was accepted and then confirmed by its own render; the top 32 held a rival
@@ -159,17 +163,33 @@ class RelocDB:
         so a LOST stretch does not pay for it on every frame. ``within``: as for ``hypotheses``, a place where
         the camera cannot be is no rival."""
         order = self.candidates(feats, check, near)[skip:]
-        floor = max(6, int(ambiguity * best.n_inliers))  # weaker solutions cannot be rivals
-        return self._rival_in(best, -1, _inside(self._solve_views(feats, camera, order, floor, max_error_px), within), ambiguity)
+        floor = max(6, int(min(ambiguity, far_ambiguity or ambiguity) * best.n_inliers))  # weaker solutions cannot be rivals
+        found = _inside(self._solve_views(feats, camera, order, floor, max_error_px), within)
+        # the best place's support: its own views ranked lower may fit better (the office: 50 inliers in the top 8, 91 below)
+        support = max([best.n_inliers] + [r.n_inliers for r, _ in found if not _distinct(best.T_wc, r.T_wc)])
+        return self._rival_in(best, -1, found, ambiguity, far_ambiguity, support)
 
     @staticmethod
-    def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float) -> bool:
+    def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float, far_ambiguity: float | None = None,
+                  support: int | None = None) -> bool:
+        n = support or best.n_inliers
+        alike: list[Pose] = []  # look-alike places far away (one chance solution may reach far_ambiguity; several do not)
         for r, v in others:
-            if _distinct(best.T_wc, r.T_wc) and r.n_inliers >= ambiguity * best.n_inliers:
-                dt, dr = best.T_wc.distance_to(r.T_wc)
+            dt, dr = best.T_wc.distance_to(r.T_wc)
+            if not _distinct(best.T_wc, r.T_wc):
+                continue
+            if r.n_inliers >= ambiguity * n:
                 log.info("relocalization ambiguous: %d inliers at view %d and %d at view %d, %.1f m / %.0f deg apart",
                          best.n_inliers, best_view, r.n_inliers, v, dt, dr)
                 return True
+            if far_ambiguity is not None and dt > FAR_M and r.n_inliers >= far_ambiguity * n \
+                    and all(_distinct(r.T_wc, a) for a in alike):
+                alike.append(r.T_wc)
+                if len(alike) >= FAR_RIVALS:
+                    log.info("relocalization ambiguous: %d places %.0f-%.0f m away fit with over %.0f %% of its %d inliers",
+                             len(alike), *sorted(best.T_wc.distance_to(a)[0] for a in alike)[::len(alike) - 1],
+                             100 * far_ambiguity, n)
+                    return True
         return False
 
     # ---- storage -----------------------------------------------------------
