@@ -715,7 +715,7 @@ class RenderMatchTracker:
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
             return None
-        if self.db.ambiguous(hyps, ambiguity, far):
+        if self.db.ambiguous(hyps, ambiguity, far, verify=lambda _: False):  # near rivals: verified below, in turn
             return None
         found: tuple[PnpResult, PnpResult, Keyframe] | None = None  # (coarse, verified, its keyframe)
         for coarse, _ in hyps[:cfg.reloc_verify]:
@@ -728,19 +728,34 @@ class RenderMatchTracker:
                 log.info("relocalization %.1f m from where the camera can be, beyond reach (%.1f m)",
                          np.linalg.norm(r.T_wc.t - reach[0]), reach[1])
                 continue
-            if found is not None:  # a second place passes too: a repetitive site (rack bays, office floors)
+            if found is not None and not self._same_place(found[1], r):  # a second place passes too: a repetitive site
                 log.info("relocalization ambiguous: verified at places %.1f m apart", found[1].T_wc.distance_to(r.T_wc)[0])
                 return None
+            if found is not None:  # the same place again (two coarse poses of it, a metre apart)
+                continue
             found = (coarse, r, self.kf)
         if found is None:
             return None
         coarse, r, self.kf = found
         t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
         check = max(cfg.reloc_check, int(np.ceil(cfg.reloc_check_fraction * self.db.n_views)))
+
+        def verify(rival: PnpResult) -> bool:  # a near rival is a place of its own when it verifies elsewhere
+            v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds)
+            return v is not None and not self._same_place(r, v)
+
+        kf = self.kf
         rival = self.db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
-                                  ambiguity=ambiguity, near=near, within=within, far_ambiguity=far)
+                                  ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify)
+        self.kf = kf
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
         return None if rival else r
+
+    @staticmethod
+    def _same_place(a: PnpResult, b: PnpResult) -> bool:
+        """Two verified poses of one place (within 0.3 m and 5 deg: renders at both matched the frame)."""
+        dt, dr = a.T_wc.distance_to(b.T_wc)
+        return dt < 0.3 and dr < 5.0
 
     def correspondences(self, image: np.ndarray, camera: Camera, T_wc: Pose) -> tuple[np.ndarray, np.ndarray]:
         """The frame's 2D-3D correspondences against the scan rendered at ``T_wc`` with ``camera``: (uv (N, 2)
