@@ -68,6 +68,7 @@ from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas,
                                      undistorted_gray)
 from services.prebuild.patches import PATCH_FILE, LandmarkPatches, corner_scores, map_fingerprint
 from services.prebuild.stella_map import StellaMap, read_map
+from services.relocalize.ambiguity import rival
 
 __all__ = ["PnlConfig", "PnlResult", "PnlLocalizer", "Status"]
 
@@ -98,6 +99,8 @@ class PnlConfig:
     reloc_keyframes: int = 4  # best-voted keyframes tried
     reloc_ransac_px: float = 4.0
     reloc_min_inliers: int = 15
+    reloc_ambiguity: float = 0.8  # another place with this share of the best's inliers makes a relocalization ambiguous,
+    reloc_cold_ambiguity: float = 0.5  # ... and so do two places over 2 m away with this share (services.relocalize.ambiguity)
     use_velocity: bool = True
     cell_px: int = 24  # keypoint grid for window search
     cell_capacity: int = 8
@@ -648,7 +651,7 @@ class PnlLocalizer:
         # votes: keyframes observing the matched landmarks
         obs = np.isin(idx.obs_lm, lm)
         votes = np.bincount(idx.obs_kf[obs], minlength=len(idx.kf_ids))
-        best = None
+        results: list[tuple[int, Pose]] = []  # (inliers, camera-to-world) per keyframe cluster tried
         tried_centers: list[np.ndarray] = []
         for k in np.argsort(-votes)[: 3 * cfg.reloc_keyframes]:
             if votes[k] < 5 or len(tried_centers) >= cfg.reloc_keyframes:
@@ -668,15 +671,20 @@ class PnlLocalizer:
                                                      reprojectionError=cfg.reloc_ransac_px, confidence=0.999,
                                                      flags=cv2.SOLVEPNP_SQPNP)
             n = 0 if (not ok or inl is None) else len(inl)
-            if n >= cfg.reloc_min_inliers and (best is None or n > best[0]):
-                best = (n, cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+            if n >= 6:
+                try:
+                    results.append((n, Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)).inverse()))
+                except ValueError:
+                    pass
         tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
-        if best is None:
+        if not results or max(n for n, _ in results) < cfg.reloc_min_inliers:
             return None
-        _, R, t = best
-        try:
-            T_wc = Pose(R, t).inverse()
-        except ValueError:
+        n_best, T_wc = max(results, key=lambda nr: nr[0])
+        # another place about as good, or several look-alikes far away: a repetitive site (services.relocalize.ambiguity)
+        why = rival(T_wc, n_best, [(T, n, None) for n, T in results if T is not T_wc], cfg.reloc_ambiguity,
+                    cfg.reloc_cold_ambiguity)
+        if why:
+            log.info("relocalization ambiguous: %s", why)
             return None
         self._local_key = None
         r = self._track(fr, T_wc, self.cfg.coarse_radius_px, tm)

@@ -29,14 +29,14 @@ from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write
+from services.relocalize.ambiguity import rival
+from services.relocalize.ambiguity import distinct as _distinct
 from services.log import progress
 
 __all__ = ["RelocDB", "DBConfig", "build_database", "DB_FORMAT_VERSION"]
 
 log = logging.getLogger(__name__)
 DB_FORMAT_VERSION = 1
-FAR_M = 2.0  # a rival place this far away is another place, not a coarse pose of the same one (one face's PnP: <= 1.5 m off)
-FAR_RIVALS = 2  # this many look-alike places (``far_ambiguity``) make a repetitive site; one can be a chance solution
 
 
 @dataclass(frozen=True)
@@ -150,9 +150,9 @@ class RelocDB:
     @staticmethod
     def ambiguous(hyps: list[tuple[PnpResult, int]], ambiguity: float = 0.8, far_ambiguity: float | None = None,
                   verify: Callable[[PnpResult], bool] | None = None) -> bool:
-        """Whether another place of ``hypotheses`` fits about as well as the first (``ambiguity`` x its inliers), or,
-        with ``far_ambiguity``, ``FAR_RIVALS`` places more than ``FAR_M`` away fit with that share of them.
-        ``verify``: asked about rivals within ``FAR_M`` instead of counting them (see ``_rival_in``)."""
+        """Whether another place of ``hypotheses`` fits about as well as the first (``ambiguity`` x its inliers),
+        or, with ``far_ambiguity``, two places more than 2 m away fit with that share of them; ``verify``: asked
+        about rivals within 2 m instead of counting them (services.relocalize.ambiguity)."""
         return len(hyps) > 1 and RelocDB._rival_in(hyps[0][0], hyps[0][1], hyps[1:], ambiguity, far_ambiguity, verify=verify)
 
     def has_rival(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
@@ -175,34 +175,12 @@ class RelocDB:
     @staticmethod
     def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float, far_ambiguity: float | None = None,
                   support: int | None = None, verify: Callable[[PnpResult], bool] | None = None) -> bool:
-        """Whether ``others`` hold a rival place of ``best`` (see ``ambiguous``). ``verify(rival)``, when given,
-        decides for rivals within ``FAR_M``: most are not places of their own but one view's coarse pose of the
-        same place a metre off (office frame 137: 39 inliers 1.0 m off, against 47) or a face's solution turned
-        90 deg on the spot (frame 90: 32 against 38), which rendering there and matching again tells apart."""
-        n = support or best.n_inliers
-        alike: list[Pose] = []  # look-alike places far away (one chance solution may reach far_ambiguity; several do not)
-        for r, v in others:
-            dt, dr = best.T_wc.distance_to(r.T_wc)
-            if not _distinct(best.T_wc, r.T_wc):
-                continue
-            if r.n_inliers >= ambiguity * n and verify is not None and dt <= FAR_M:
-                if verify(r):
-                    log.info("relocalization ambiguous: a place %.1f m / %.0f deg away verified too", dt, dr)
-                    return True
-                continue
-            if r.n_inliers >= ambiguity * n:
-                log.info("relocalization ambiguous: %d inliers at view %d and %d at view %d, %.1f m / %.0f deg apart",
-                         best.n_inliers, best_view, r.n_inliers, v, dt, dr)
-                return True
-            if far_ambiguity is not None and dt > FAR_M and r.n_inliers >= far_ambiguity * n \
-                    and all(_distinct(r.T_wc, a) for a in alike):
-                alike.append(r.T_wc)
-                if len(alike) >= FAR_RIVALS:
-                    log.info("relocalization ambiguous: %d places %.0f-%.0f m away fit with over %.0f %% of its %d inliers",
-                             len(alike), *sorted(best.T_wc.distance_to(a)[0] for a in alike)[::len(alike) - 1],
-                             100 * far_ambiguity, n)
-                    return True
-        return False
+        """Whether ``others`` ((result, view) pairs) hold a rival place of ``best``: services.relocalize.ambiguity."""
+        why = rival(best.T_wc, support or best.n_inliers, [(r.T_wc, r.n_inliers, r) for r, _ in others], ambiguity,
+                    far_ambiguity, verify)
+        if why:
+            log.info("relocalization ambiguous (view %d): %s", best_view, why)
+        return why is not None
 
     # ---- storage -----------------------------------------------------------
     def save(self, path: str | Path) -> None:
@@ -232,12 +210,6 @@ def _inside(results: list[tuple[PnpResult, int]], within: tuple[np.ndarray, floa
         return results
     centre, radius = within
     return [(r, v) for r, v in results if np.linalg.norm(r.T_wc.t - np.asarray(centre, float)) <= radius]
-
-
-def _distinct(a: Pose, b: Pose) -> bool:
-    """Two poses at different places (more than 1 m or 20 degrees apart), not two estimates of one."""
-    dt, dr = a.distance_to(b)
-    return dt > 1.0 or dr > 20.0
 
 
 def build_database(renderer, positions: np.ndarray, extractor: XFeatExtractor, cfg: DBConfig = DBConfig(),
