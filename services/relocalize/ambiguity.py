@@ -57,5 +57,6 @@ def rival(best: Pose, support: int, others: Iterable[tuple[Pose, int, Any]], amb
             alike.append(T)
             if len(alike) >= FAR_RIVALS:
                 m = sorted(best.distance_to(a)[0] for a in alike)
-                return f"{len(alike)} places {m[0]:.0f}-{m[-1]:.0f} m away have over {100 * far_ambiguity:.0f} % of its {support} inliers"
+                return (f"{len(alike)} places {m[0]:.0f}-{m[-1]:.0f} m away have over {100 * far_ambiguity:.0f} % "
+                        f"of its {support} inliers")
     return None

@@ -29,9 +29,9 @@ from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write
-from services.relocalize.ambiguity import rival
-from services.relocalize.ambiguity import distinct as _distinct
 from services.log import progress
+from services.relocalize.ambiguity import distinct as _distinct
+from services.relocalize.ambiguity import rival
 
 __all__ = ["RelocDB", "DBConfig", "build_database", "DB_FORMAT_VERSION"]
 
