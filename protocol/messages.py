@@ -27,7 +27,9 @@ device's own odometry, a reset flag and a deadline.
 ========== ==============================================================================
 tracking    pose from tracking against the scan
 relocalized pose from relocalization (first frame, after lost, after reset)
-lost        the frame was processed but no pose passed the quality gates; ``pose`` is None
+lost        the frame was processed but no pose passed the quality gates; ``pose`` is None and ``reason``
+            says why when the server knows (e.g. "ambiguous place: ...": a repetitive site, where a
+            ``prior`` lets it track; "pose too uncertain to report ...": a blurred or feature-poor frame)
 dropped     the server skipped this frame: a newer frame of the same client superseded it
             (latest frame wins) or its deadline had passed; ``error`` says which. Not a fault.
 rejected    the request was invalid (``error`` + ``reason`` say why); the client must fix it

@@ -268,6 +268,8 @@ def test_a_cold_frame_needs_a_clear_margin_over_look_alikes_elsewhere(rm_setup):
     assert cold(db)  # the real site: one place
     assert cold(_twin(db, np.array([10.0, 0.0, 0.0]), keep=0.6))  # one look-alike: could be chance
     assert not cold(aisles)
+    lost = RenderMatchTracker(renderer, ext, aisles).process(f7.image, seq.camera)
+    assert lost.T_wc is None and lost.reason.startswith("ambiguous place: 2 places 10-20 m away"), lost.reason
     assert cold(aisles, RMConfig(reloc_cold_ambiguity=0.8))  # the look-alikes are the reason
     near = RenderMatchTracker(renderer, ext, aisles)._relocalize(_Frame(f7.image, seq.camera, {}, None, 0.0, None), (G7.t, 4.0))
     assert near is not None and G7.distance_to(near.T_wc)[0] < 0.05

@@ -95,9 +95,10 @@ def test_request_reply_and_publication(service, small_site):
                                 deadline_ms=5000) as c2:
             assert c2.wait_for_server(5)
             assert c2.localize(seq.files[6].read_bytes(), seq.camera).status is Status.RELOCALIZED
-        # garbage pixels: lost, not a guess
+        # garbage pixels: lost, not a guess, and the reply says why
         noise = np.random.default_rng(0).integers(0, 255, seq.read(0).image.shape, dtype=np.uint8)
-        assert cl.localize(noise, seq.camera).status is Status.LOST
+        lost = cl.localize(noise, seq.camera)
+        assert lost.status is Status.LOST and lost.pose is None and lost.reason, lost
     finally:
         sub_sess.close()
 

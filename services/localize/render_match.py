@@ -173,6 +173,7 @@ class FrameResult:
     sigma_m: float = float("nan")  # predicted 1-sigma camera-centre uncertainty
     sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
     blur_px: float = 0.0  # predicted motion blur of the frame (pixels) the render was blurred with
+    reason: str | None = None  # why a LOST frame has no pose (an ambiguous place, too uncertain a pose, ...)
 
 
 def _parabolic_peak(x: np.ndarray, y: np.ndarray) -> float:
@@ -234,6 +235,7 @@ class _Frame:
     live: dict = field(default_factory=dict)  # scale -> Features
     gray: dict = field(default_factory=dict)  # (width, height) -> the live frame in normalised grey at that size
     relocalizing: bool = False
+    reason: str | None = None  # why this frame has no pose, when it has none
 
 
 def _fuse(a: PnpResult, b: PnpResult) -> PnpResult:
@@ -714,8 +716,12 @@ class RenderMatchTracker:
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
+            fr.reason = "no place in the database fits the frame" if not hyps else \
+                f"the best place in the database has {hyps[0][0].n_inliers} inliers, under the {need} a pose needs"
             return None
-        if self.db.ambiguous(hyps, ambiguity, far, verify=lambda _: False):  # near rivals: verified below, in turn
+        why = self.db.ambiguous(hyps, ambiguity, far, verify=lambda _: False)  # near rivals: verified below, in turn
+        if why:
+            fr.reason = f"ambiguous place: {why}"
             return None
         found: tuple[PnpResult, PnpResult, Keyframe] | None = None  # (coarse, verified, its keyframe)
         for coarse, _ in hyps[:cfg.reloc_verify]:
@@ -725,16 +731,19 @@ class RenderMatchTracker:
             if not self._good(r):
                 continue
             if reach is not None and np.linalg.norm(r.T_wc.t - reach[0]) > reach[1]:
-                log.info("relocalization %.1f m from where the camera can be, beyond reach (%.1f m)",
-                         np.linalg.norm(r.T_wc.t - reach[0]), reach[1])
+                fr.reason = (f"the place found is {np.linalg.norm(r.T_wc.t - reach[0]):.1f} m from where the camera can "
+                             f"be ({reach[1]:.1f} m)")
+                log.info("relocalization %s", fr.reason)
                 continue
             if found is not None and not self._same_place(found[1], r):  # a second place passes too: a repetitive site
-                log.info("relocalization ambiguous: verified at places %.1f m apart", found[1].T_wc.distance_to(r.T_wc)[0])
+                fr.reason = f"ambiguous place: verified at places {found[1].T_wc.distance_to(r.T_wc)[0]:.1f} m apart"
+                log.info("relocalization %s", fr.reason)
                 return None
             if found is not None:  # the same place again (two coarse poses of it, a metre apart)
                 continue
             found = (coarse, r, self.kf)
         if found is None:
+            fr.reason = fr.reason or "no place in the database was confirmed by a render"
             return None
         coarse, r, self.kf = found
         t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
@@ -749,7 +758,10 @@ class RenderMatchTracker:
                                   ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify)
         self.kf = kf
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
-        return None if rival else r
+        if rival:
+            fr.reason = f"ambiguous place: {rival}"
+            return None
+        return r
 
     @staticmethod
     def _same_place(a: PnpResult, b: PnpResult) -> bool:
@@ -867,8 +879,9 @@ class RenderMatchTracker:
             if self.T_last is not None:
                 self.recent, self.lost_frames = (self.T_last, self.stamp_last), 0
             self._lose()
+            reason = fr.reason or ("no database to relocalize from" if self.db is None else "no pose")
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
-                               float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm)
+                               float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm, reason=reason)
         self.motion_tracked = consecutive and status == Status.TRACKING
         if self.motion_tracked:
             self.motion = (self.T_last.inverse() @ r.T_wc, stamp - self.stamp_last)
@@ -891,5 +904,9 @@ class RenderMatchTracker:
                 v = (r.T_wc.t - T_prev.t) / self.motion[1]
                 v = v if np.linalg.norm(v) <= self.cfg.max_speed_mps else None
             self.anchor = (r.T_wc, stamp, v)
+        reason = None
+        if not good:
+            reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg 1-sigma)"
+                      if not self._good(r) else "pose away from where the motion leads")
         return FrameResult(status if good else Status.LOST, r.T_wc if good else None, r.n_inliers, r.reproj_rmse_px,
-                           rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, self._blur_px(fr, self._exposure(fr)))
+                           rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, self._blur_px(fr, self._exposure(fr)), reason)

@@ -121,7 +121,7 @@ class RelocDB:
         """
         # weaker solutions too: a rival only needs ``ambiguity`` x the best's inliers, which may be below min_inliers
         hyps = self.hypotheses(feats, camera, k, max(6, int(ambiguity * min_inliers)), max_error_px, near)
-        if not hyps or hyps[0][0].n_inliers < min_inliers or self.ambiguous(hyps, ambiguity):
+        if not hyps or hyps[0][0].n_inliers < min_inliers or self.ambiguous(hyps, ambiguity) is not None:
             return None, -1
         best, best_view = hyps[0]
         if check > k and self.has_rival(feats, camera, best, k, check, max_error_px, ambiguity, near):
@@ -149,17 +149,17 @@ class RelocDB:
 
     @staticmethod
     def ambiguous(hyps: list[tuple[PnpResult, int]], ambiguity: float = 0.8, far_ambiguity: float | None = None,
-                  verify: Callable[[PnpResult], bool] | None = None) -> bool:
-        """Whether another place of ``hypotheses`` fits about as well as the first (``ambiguity`` x its inliers),
-        or, with ``far_ambiguity``, two places more than 2 m away fit with that share of them; ``verify``: asked
-        about rivals within 2 m instead of counting them (services.relocalize.ambiguity)."""
-        return len(hyps) > 1 and RelocDB._rival_in(hyps[0][0], hyps[0][1], hyps[1:], ambiguity, far_ambiguity, verify=verify)
+                  verify: Callable[[PnpResult], bool] | None = None) -> str | None:
+        """Why another place of ``hypotheses`` fits about as well as the first (``ambiguity`` x its inliers), or,
+        with ``far_ambiguity``, two places more than 2 m away fit with that share of them; None if none does.
+        ``verify``: asked about rivals within 2 m instead of counting them (services.relocalize.ambiguity)."""
+        return RelocDB._rival_in(hyps[0][0], hyps[0][1], hyps[1:], ambiguity, far_ambiguity, verify=verify) if len(hyps) > 1 else None
 
     def has_rival(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
                   max_error_px: float = 3.0, ambiguity: float = 0.8,
                   near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None,
-                  far_ambiguity: float | None = None, verify: Callable[[PnpResult], bool] | None = None) -> bool:
-        """Whether views ranked ``skip``..``check`` for this query hold another place that fits it about as
+                  far_ambiguity: float | None = None, verify: Callable[[PnpResult], bool] | None = None) -> str | None:
+        """Why (None: not) views ranked ``skip``..``check`` for this query hold another place that fits it about as
         well as ``best``. In the simulated warehouse the true aisle ranked outside the top 8 twice, and a
         wrong aisle 24-30 m away was accepted and then confirmed by its own render; the top 32 held a rival
         both times. Callers that refine the coarse pose first (Render & Match) ask only once it passed,
@@ -174,13 +174,13 @@ class RelocDB:
 
     @staticmethod
     def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float, far_ambiguity: float | None = None,
-                  support: int | None = None, verify: Callable[[PnpResult], bool] | None = None) -> bool:
-        """Whether ``others`` ((result, view) pairs) hold a rival place of ``best``: services.relocalize.ambiguity."""
+                  support: int | None = None, verify: Callable[[PnpResult], bool] | None = None) -> str | None:
+        """Why ``others`` ((result, view) pairs) hold a rival place of ``best`` (services.relocalize.ambiguity), or None."""
         why = rival(best.T_wc, support or best.n_inliers, [(r.T_wc, r.n_inliers, r) for r, _ in others], ambiguity,
                     far_ambiguity, verify)
         if why:
             log.info("relocalization ambiguous (view %d): %s", best_view, why)
-        return why is not None
+        return why
 
     # ---- storage -----------------------------------------------------------
     def save(self, path: str | Path) -> None:

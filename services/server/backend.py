@@ -33,6 +33,7 @@ class TrackResult:
     sigma_m: float = float("nan")
     sigma_deg: float = float("nan")
     timings: dict[str, float] = field(default_factory=dict)
+    reason: str | None = None  # why a LOST frame has no pose
 
 
 def _status(s) -> str:
@@ -53,7 +54,7 @@ class _RMTracker:
         # stamps give the tracker its constant-velocity prediction and motion-blur model; odometry replaces the former
         r = self.t.process(image, camera, prior, stamp=stamp, motion=motion, exposure_s=exposure_s)
         return TrackResult(_status(r.status), r.T_wc, int(r.inliers), float(r.rmse_px), float(r.sigma_m),
-                           float(r.sigma_deg), dict(r.timings))
+                           float(r.sigma_deg), dict(r.timings), getattr(r, "reason", None))
 
 
 class RMBackend:
