@@ -82,6 +82,7 @@ def test_localize_cli_writes_tum_and_reports_ape(rm_setup, small_site, tmp_path,
     assert rc == 0
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert s["frames"] == 6 and s["localized"] >= 5 and s["ape_none_trans_rmse_m"] < 0.05
+    assert sum(s.get("lost_reasons", {}).values()) == s["lost"]  # every LOST frame says why
     traj = read_tum(tmp_path / "t.txt")
     assert set(traj.stamps) <= set(seq.stamps[:6])
     assert main(["localize", str(out / "scan.ply"), str(out / "seq_00"), "--db", str(tmp_path / "missing.npz"),

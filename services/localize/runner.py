@@ -18,7 +18,7 @@ def _seconds(stamp: str) -> float | None:
 def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamped: bool = False):
     """Run a localizer over the first ``n`` frames (``stamped``: pass each frame's capture time, which
     Render & Match uses for constant velocity and motion blur). Returns (trajectory, status counts, mean
-    ms per stage, seconds)."""
+    ms per stage, seconds, LOST frames per reason)."""
     from services.io.trajectory import Trajectory
     from services.localize.status import Status
     from services.log import progress
@@ -26,17 +26,22 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     traj = Trajectory()
     counts = {s: 0 for s in Status}
     stage: dict[str, float] = {}
+    why: dict[str, int] = {}
     t0 = time.perf_counter()
     for i, frame in enumerate(progress(seq, desc=progress_desc, total=n, unit="frame")):
         if i >= n:
             break
         r = loc.process(frame.image, seq.camera, stamp=_seconds(frame.stamp)) if stamped else loc.process(frame.image, seq.camera)
         counts[r.status] += 1
+        reason = getattr(r, "reason", None) if r.status == Status.LOST else None
+        if reason:  # its kind: "ambiguous place: 2 places ..." -> "ambiguous place"
+            kind = reason.split(":")[0].split(" (")[0]
+            why[kind] = why.get(kind, 0) + 1
         for k, v in r.timings.items():
             stage[k] = stage.get(k, 0.0) + v / n
         if r.T_wc is not None:
             traj.append(frame.stamp, r.T_wc)
-    return traj, counts, stage, time.perf_counter() - t0
+    return traj, counts, stage, time.perf_counter() - t0, why
 
 
 def localize_and_report(loc, seq, args, method: str, stamped: bool = False, after=None) -> int:
@@ -47,13 +52,16 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     from services.localize.status import Status
 
     n = min(len(seq), args.frames or len(seq))
-    traj, counts, stage, dt = localize_sequence(loc, seq, n, stamped=stamped)
+    traj, counts, stage, dt, why = localize_sequence(loc, seq, n, stamped=stamped)
     write_tum(args.out, traj, header=f"cristal localize --method {method}: camera-to-world in the scan frame")
     print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {counts[Status.LOST]} lost), "
           f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
     summary = {"out": args.out, "method": method, "frames": n, "localized": len(traj),
                "relocalizations": counts[Status.RELOCALIZED], "lost": counts[Status.LOST], "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
+    if why:
+        print("lost: " + ", ".join(f"{v} {k}" for k, v in sorted(why.items(), key=lambda kv: -kv[1])))
+        summary["lost_reasons"] = why
     if seq.groundtruth is not None and len(traj):
         from services.eval.ape import ape_first_frames
 
