@@ -24,8 +24,9 @@ examples:
   cristal localize site/map site/seq_00 --method pnl --map site/map --out traj.txt     Prebuild & Localize (CPU, no torch)
 
 Writes a TUM trajectory (camera-to-world in the scan frame; frames without a pose are absent),
-prints frames localized, relocalizations and FPS per stage, and, when the sequence has a
-groundtruth.txt, the APE against it. Ends with a one-line JSON summary.
+prints frames localized, relocalizations and FPS per stage, the LOST frames by reason (Render & Match:
+"ambiguous place" in a repetitive site, where a prior would help; "pose too uncertain to report"; ...)
+and, when the sequence has a groundtruth.txt, the APE against it. Ends with a one-line JSON summary.
 """
 
 
