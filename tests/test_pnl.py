@@ -92,7 +92,7 @@ def test_localizer_api_seed_and_lost_on_blank_frame(pnl_site, pnl_map):
     loc = PnlLocalizer.load(pnl_map[0], PnlConfig())
     blank = np.full((cam.height, cam.width), 128, np.uint8)
     r = loc.process(blank, cam)
-    assert r.status == Status.LOST and r.T_wc is None and "total_ms" in r.timings
+    assert r.status == Status.LOST and r.T_wc is None and "total_ms" in r.timings and r.reason
     # seeded with a pose 3 cm / ~1 degree off, the next frame tracks (no relocalization) and lands near the truth
     seq = open_sequence(out / "seq")
     f = seq.read(3)

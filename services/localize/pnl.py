@@ -131,6 +131,7 @@ class PnlResult:
     timings: dict[str, float] = field(default_factory=dict)  # ms
     sigma_m: float = float("nan")  # predicted 1-sigma camera-centre uncertainty
     sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
+    reason: str | None = None  # why a LOST frame has no pose
 
 
 class _MapIndex:
@@ -237,6 +238,7 @@ class _Frame:
     gh: int = 0
     inv_sigma2: np.ndarray | None = None  # (N,) 1 / scale^(2 octave)
     gray: np.ndarray | None = None  # undistorted grey float32, for patch alignment (see PnlLocalizer._gray)
+    reason: str | None = None  # why this frame has no pose, when it has none
 
 
 def _iso(w: np.ndarray) -> np.ndarray:
@@ -633,6 +635,7 @@ class PnlLocalizer:
         self._features(fr, tm)
         t0 = time.perf_counter()
         idx, cfg = self.idx, self.cfg
+        fr.reason = "no place in the map fits the frame"
         if len(fr.feats) < 10 or len(idx._reloc_rows) < 10:
             return None
         # the strongest keypoints only: the kNN against every landmark is the cost of a relocalization
@@ -684,7 +687,8 @@ class PnlLocalizer:
         why = rival(T_wc, n_best, [(T, n, None) for n, T in results if T is not T_wc], cfg.reloc_ambiguity,
                     cfg.reloc_cold_ambiguity)
         if why:
-            log.info("relocalization ambiguous: %s", why)
+            fr.reason = f"ambiguous place: {why}"
+            log.info("relocalization %s", fr.reason)
             return None
         self._local_key = None
         r = self._track(fr, T_wc, self.cfg.coarse_radius_px, tm)
@@ -734,7 +738,8 @@ class PnlLocalizer:
         if not self._plausible(r):
             self.T_last = None
             self._vel = None
-            return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm)
+            return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm,
+                             reason=fr.reason or "no pose")
         R, t, n, rmse, sig_m, sig_deg, _ = r
         T_wc = Pose(R.T, -R.T @ t)
         if self.T_last is not None and status == Status.TRACKING:  # (also weakly constrained: a fast pan keeps it)
@@ -743,6 +748,7 @@ class PnlLocalizer:
             self._vel = None
         if not self._good(r, fr):  # weakly constrained: no pose reported, but tracking continues from it
             self.T_last = T_wc
-            return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg)
+            return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg,
+                             f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)")
         self.T_last = T_wc
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)

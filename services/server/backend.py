@@ -128,7 +128,7 @@ class _PnlTracker:
         r = self.loc.process(image, camera, prior)
         self.T_last = r.T_wc
         return TrackResult(_status(r.status), r.T_wc, int(getattr(r, "inliers", 0)), float(getattr(r, "rmse_px", np.nan)),
-                           timings=dict(getattr(r, "timings", {}) or {}))
+                           timings=dict(getattr(r, "timings", {}) or {}), reason=getattr(r, "reason", None))
 
 
 class PnlBackend:
