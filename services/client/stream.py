@@ -41,6 +41,7 @@ class StreamStats:
     none: int = 0
     missed: int = 0  # no reply before the deadline / no live server
     lost: int = 0  # server replied lost
+    lost_reasons: dict[str, int] = field(default_factory=dict)  # those replies by the kind of their reason
     dropped: int = 0
     rejected: int = 0
     switches: int = 0
@@ -53,7 +54,8 @@ class StreamStats:
         rtt = np.array(self.rtt_ms) if self.rtt_ms else np.array([np.nan])
         srv = np.array(self.server_ms) if self.server_ms else np.array([np.nan])
         return {"frames": self.frames, "server": self.server, "local": self.local, "no_pose": self.none,
-                "missed": self.missed, "lost": self.lost, "dropped": self.dropped, "rejected": self.rejected,
+                "missed": self.missed, "lost": self.lost, "lost_reasons": dict(self.lost_reasons),
+                "dropped": self.dropped, "rejected": self.rejected,
                 "switches": self.switches, "fps": round(self.frames / self.wall_s, 2) if self.wall_s else 0.0,
                 "rtt_p50_ms": round(float(np.nanpercentile(rtt, 50)), 2), "rtt_p99_ms": round(float(np.nanpercentile(rtt, 99)), 2),
                 "overhead_p50_ms": round(float(np.nanpercentile(rtt - srv, 50)), 2) if len(rtt) == len(srv) else None}
@@ -112,6 +114,10 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
                 status, server = rep.status.value, rep.server or "-"
                 if rep.status.value == "lost":
                     st.lost += 1
+                    kind = (rep.reason or "no reason given").split(":")[0].split(" (")[0]
+                    if kind not in st.lost_reasons:  # once per kind: a repetitive site's "ambiguous place" asks for a prior
+                        log.info("frame %s lost: %s", frame.stamp, rep.reason)
+                    st.lost_reasons[kind] = st.lost_reasons.get(kind, 0) + 1
                 elif rep.status.value == "dropped":
                     st.dropped += 1
                 elif rep.status.value == "rejected":
