@@ -51,7 +51,7 @@ from enum import Enum
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 __all__ = ["ImageEncoding", "Status", "ErrorCode", "Intrinsics", "PoseMsg", "FrameRequest", "PoseReply",
-           "MapBundleInfo", "BundleChunk", "SiteInfo", "Health", "MESSAGE_TYPES", "MAX_IMAGE_SIDE"]
+           "MapBundleInfo", "BundleChunk", "SiteInfo", "Health", "MESSAGE_TYPES", "MAX_IMAGE_SIDE", "reason_kind"]
 
 MAX_IMAGE_SIDE = 8192  # pixels; bigger frames are rejected (intrinsics and decoded images alike)
 
@@ -191,6 +191,12 @@ class FrameRequest(_Msg):
         if not math.isfinite(v):
             raise ValueError("stamp must be finite")
         return v
+
+
+def reason_kind(reason: str | None) -> str:
+    """The kind of a LOST reply's ``reason``, for counting: "ambiguous place: 2 places ..." -> "ambiguous place",
+    "pose too uncertain to report (0.7 cm ...)" -> "pose too uncertain to report"."""
+    return (reason or "no reason given").split(":")[0].split(" (")[0]
 
 
 class PoseReply(_Msg):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.messages import reason_kind
 from services.client.client import LocalizationClient, reply_pose
 from services.client.fallback import LocalFallback
 from services.geometry.se3 import Pose
@@ -114,7 +115,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
                 status, server = rep.status.value, rep.server or "-"
                 if rep.status.value == "lost":
                     st.lost += 1
-                    kind = (rep.reason or "no reason given").split(":")[0].split(" (")[0]
+                    kind = reason_kind(rep.reason)
                     if kind not in st.lost_reasons:  # once per kind: a repetitive site's "ambiguous place" asks for a prior
                         log.info("frame %s lost: %s", frame.stamp, rep.reason)
                     st.lost_reasons[kind] = st.lost_reasons.get(kind, 0) + 1

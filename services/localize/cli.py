@@ -110,9 +110,7 @@ built for one camera), and the intrinsics a client sends with its frames.
 
 def run_calibrate(args) -> int:
     from services.cli import CliError
-    from services.features.xfeat import XFeatExtractor
     from services.geometry.camera import Camera
-    from services.io.atomic import atomic_write
     from services.io.scans import load_scan
     from services.io.sequence import open_sequence
     from services.localize.calibrate import calibrate
@@ -127,8 +125,7 @@ def run_calibrate(args) -> int:
     seq = open_sequence(args.sequence, camera=start)
     db = RelocDB.load(args.db)
     renderer = Renderer(load_scan(args.scan), device=args.device)
-    ext = XFeatExtractor(device=str(renderer.device), top_k=1024,
-                         max_side=None if renderer.device.type == "cuda" else 480)
+    ext = _tracking_extractor(renderer)
     n = min(len(seq), args.frames or len(seq))
     if args.every < 1 or args.rounds < 1:
         raise CliError("--every and --rounds must be at least 1")
@@ -150,8 +147,7 @@ def run_calibrate(args) -> int:
     except ValueError as e:
         raise CliError(f"cannot calibrate: {e}. Localize more of the sequence (check --db; --every 1; a starting "
                        f"camera nearer the truth)") from e
-    with atomic_write(args.out) as fh:
-        fh.write(json.dumps(res.camera.to_dict(), indent=2).encode())
+    res.camera.save(args.out)
     c0, c1 = seq.camera, res.camera
     print(f"fx {c0.fx:.2f} -> {c1.fx:.2f}, fy {c0.fy:.2f} -> {c1.fy:.2f}, cx {c0.cx:.2f} -> {c1.cx:.2f}, "
           f"cy {c0.cy:.2f} -> {c1.cy:.2f}, distortion {list(c0.distortion)} -> {[round(x, 4) for x in c1.distortion]} "
@@ -160,6 +156,15 @@ def run_calibrate(args) -> int:
                       "distortion": list(c1.distortion), "frames": res.frames,
                       "points": res.points, "rms_px": res.rms_px, "rounds": res.rounds}))
     return 0
+
+
+def _tracking_extractor(renderer, max_side: int | None = None):
+    """XFeat as Render & Match tracks with it: 1024 keypoints on frames at most ``max_side`` px (default: 480 on the
+    CPU, the full frame on CUDA)."""
+    from services.features.xfeat import XFeatExtractor
+
+    return XFeatExtractor(device=str(renderer.device), top_k=1024,
+                          max_side=max_side or (None if renderer.device.type == "cuda" else 480))
 
 
 def _torch_threads() -> None:
@@ -215,7 +220,6 @@ def run_localize(args) -> int:
         return run_localize_pnl(args)
     if not args.db:
         raise CliError("--method rm needs --db (a relocalization database from 'cristal build-db')")
-    from services.features.xfeat import XFeatExtractor
     from services.io.scans import load_scan
     from services.io.sequence import open_sequence
     from services.localize.render_match import RenderMatchTracker, RMConfig
@@ -228,10 +232,9 @@ def run_localize(args) -> int:
     db = RelocDB.load(args.db)
     scan = load_scan(args.scan)
     renderer = Renderer(scan, device=args.device)
-    max_side = args.max_side if args.max_side else (None if renderer.device.type == "cuda" else 480)
     cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
                    direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points)
-    tracker = RenderMatchTracker(renderer, XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side), db, cfg)
+    tracker = RenderMatchTracker(renderer, _tracking_extractor(renderer, args.max_side), db, cfg)
     return localize_and_report(tracker, seq, args, args.method, stamped=True,
                                after=None if getattr(args, "no_camera_check", False) else lambda traj: _camera_check(tracker, seq, traj))
 

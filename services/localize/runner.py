@@ -19,6 +19,7 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     """Run a localizer over the first ``n`` frames (``stamped``: pass each frame's capture time, which
     Render & Match uses for constant velocity and motion blur). Returns (trajectory, status counts, mean
     ms per stage, seconds, LOST frames per reason)."""
+    from protocol.messages import reason_kind
     from services.io.trajectory import Trajectory
     from services.localize.status import Status
     from services.log import progress
@@ -34,9 +35,8 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
         r = loc.process(frame.image, seq.camera, stamp=_seconds(frame.stamp)) if stamped else loc.process(frame.image, seq.camera)
         counts[r.status] += 1
         reason = getattr(r, "reason", None) if r.status == Status.LOST else None
-        if reason:  # its kind: "ambiguous place: 2 places ..." -> "ambiguous place"
-            kind = reason.split(":")[0].split(" (")[0]
-            why[kind] = why.get(kind, 0) + 1
+        if reason:
+            why[reason_kind(reason)] = why.get(reason_kind(reason), 0) + 1
         for k, v in r.timings.items():
             stage[k] = stage.get(k, 0.0) + v / n
         if r.T_wc is not None:
