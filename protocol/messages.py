@@ -195,7 +195,8 @@ class FrameRequest(_Msg):
 
 def reason_kind(reason: str | None) -> str:
     """The kind of a LOST reply's ``reason``, for counting: "ambiguous place: 2 places ..." -> "ambiguous place",
-    "pose too uncertain to report (0.7 cm ...)" -> "pose too uncertain to report"."""
+    "pose too uncertain to report (0.7 cm ...)" -> "pose too uncertain to report". Reasons keep their numbers
+    after the kind, never in it."""
     return (reason or "no reason given").split(":")[0].split(" (")[0]
 
 

@@ -101,3 +101,15 @@ def test_keys_are_scoped_and_parse():
         keys.check_id("a/b", "client")
     info = MapBundleInfo(map="m", version="v", size=10, sha256="00", chunk_size=4, chunks=3)
     assert decode(encode(info), MapBundleInfo) == info
+
+
+def test_reason_kinds_count_alike_reasons_together():
+    """LOST reasons are counted by kind (the summaries' lost_reasons): the numbers follow the kind, never sit in it."""
+    from protocol.messages import reason_kind
+
+    assert reason_kind("too few inliers in the database: the best place has 22, a pose needs 30") == \
+        reason_kind("too few inliers in the database: the best place has 27, a pose needs 12") == "too few inliers in the database"
+    assert reason_kind("pose too uncertain to report (0.7 cm / 0.11 deg 1-sigma)") == "pose too uncertain to report"
+    assert reason_kind("place out of reach: found 3.1 m from where the camera can be (1.2 m)") == "place out of reach"
+    assert reason_kind("ambiguous place: verified at places 2.0 m apart") == "ambiguous place"
+    assert reason_kind(None) == "no reason given"

@@ -717,7 +717,7 @@ class RenderMatchTracker:
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
             fr.reason = "no place in the database fits the frame" if not hyps else \
-                f"the best place in the database has {hyps[0][0].n_inliers} inliers, under the {need} a pose needs"
+                f"too few inliers in the database: the best place has {hyps[0][0].n_inliers}, a pose needs {need}"
             return None
         why = self.db.ambiguous(hyps, ambiguity, far, verify=lambda _: False)  # near rivals: verified below, in turn
         if why:
@@ -731,8 +731,8 @@ class RenderMatchTracker:
             if not self._good(r):
                 continue
             if reach is not None and np.linalg.norm(r.T_wc.t - reach[0]) > reach[1]:
-                fr.reason = (f"the place found is {np.linalg.norm(r.T_wc.t - reach[0]):.1f} m from where the camera can "
-                             f"be ({reach[1]:.1f} m)")
+                fr.reason = (f"place out of reach: found {np.linalg.norm(r.T_wc.t - reach[0]):.1f} m from where the camera "
+                             f"can be ({reach[1]:.1f} m)")
                 log.info("relocalization %s", fr.reason)
                 continue
             if found is not None and not self._same_place(found[1], r):  # a second place passes too: a repetitive site
