@@ -115,6 +115,8 @@ class RMConfig:
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
+    odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for up to
+    #                                this long and the next frame tracks from it (a whip pan does not cost the track)
     depth_radius: int = 4  # render pixels: a keypoint's depth is a plane fitted to the scan points this close ...
     depth_max_residual: float = 0.01  # ... all within this fraction of their depth of it (a depth edge is refused)
     exposure_s: float | None = None  # camera exposure time; None: per frame from the caller, else calibrated
@@ -281,6 +283,7 @@ class RenderMatchTracker:
         #                                                                   camera's world velocity then (if tracked)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.lost_frames = 0
+        self.carried_s = 0.0  # how long ``T_last`` has been carried through LOST frames by the device's odometry (0: tracked)
 
     def _lose(self) -> None:
         self.kf: Keyframe | None = None
@@ -763,6 +766,15 @@ class RenderMatchTracker:
             return None
         return r
 
+    def _carry(self, T: Pose | None, stamp: float | None, dt: float) -> None:
+        """After a LOST frame: keep the pose the device's odometry gives it (``T``) as the one the next frame tracks
+        from, for up to ``odometry_carry_s`` (odometry drifts; after that the database decides). Not reported."""
+        dt = dt if dt > 0 else 1.0 / 30.0
+        if T is None or self.carried_s + dt > self.cfg.odometry_carry_s:
+            self.carried_s = 0.0
+            return
+        self.T_last, self.stamp_last, self.carried_s = T, stamp, self.carried_s + dt
+
     @staticmethod
     def _same_place(a: PnpResult, b: PnpResult) -> bool:
         """Two verified poses of one place (within 0.3 m and 5 deg: renders at both matched the frame)."""
@@ -806,10 +818,11 @@ class RenderMatchTracker:
         predicted: Pose | None = None  # where the motion model put this frame, when it had a motion
         if prior is not None and self.T_last is None:
             self.T_last = prior
+        carry: Pose | None = None  # where the device's odometry puts this frame, should it be LOST
         if self.T_last is not None:
             T_pred = self.T_last
             if motion is not None:  # the device's odometry
-                T_pred = self.T_last @ motion
+                T_pred = carry = self.T_last @ motion
             elif fr.motion is not None:  # constant velocity
                 D, dt = fr.motion
                 T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
@@ -879,9 +892,12 @@ class RenderMatchTracker:
             if self.T_last is not None:
                 self.recent, self.lost_frames = (self.T_last, self.stamp_last), 0
             self._lose()
+            self._carry(carry, stamp, fr.dt_next)
             reason = fr.reason or ("no database to relocalize from" if self.db is None else "no pose")
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
                                float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm, reason=reason)
+        reacquired = self.carried_s > 0 and status == Status.TRACKING  # tracked from a pose the odometry carried
+        status = Status.RELOCALIZED if reacquired else status
         self.motion_tracked = consecutive and status == Status.TRACKING
         if self.motion_tracked:
             self.motion = (self.T_last.inverse() @ r.T_wc, stamp - self.stamp_last)
@@ -894,10 +910,11 @@ class RenderMatchTracker:
         else:
             self.motion = None
         T_prev = self.T_last
-        self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
+        self.T_last, self.stamp_last, self.recent, self.carried_s = r.T_wc, stamp, None, 0.0
         # else weakly constrained, or where the motion cannot have taken it: no pose reported, but tracking continues
         good = self._good(r) and (status != Status.TRACKING or self._consistent(r, predicted, fr.dt_next))
         self.sigma_last = r.sigma_t_m
+        self.relocalizations += int(good and reacquired)
         if good and stamp is not None:
             v = None  # world velocity, from this frame's tracked motion (none if implausibly fast: stamps too close)
             if self.motion is not None and status == Status.TRACKING and consecutive:
