@@ -79,11 +79,16 @@ def test_keep_server_serves_another_client_and_stops_cleanly_on_ctrl_c(demo_run,
             if "keep running" in line:
                 break
         assert first and "keep running" in first[-1], "".join(first) + (tmp_path / "demo.err").read_text()
+        from services.io.sequence import open_sequence
+        from services.io.trajectory import write_tum
+        from services.sim.odometry import simulate_odometry
+
+        write_tum(tmp_path / "odo.txt", simulate_odometry(open_sequence(small_site[0] / "seq_00").groundtruth))
         c = cristal("stream", small_site[0] / "seq_00", "--out", tmp_path / "t.txt", "--connect", endpoint(port),
-                    "--frames", "3", "--deadline", "5000", "--map", tmp_path / "dl")
+                    "--frames", "3", "--deadline", "5000", "--map", tmp_path / "dl", "--odometry", tmp_path / "odo.txt")
         o, e = c.communicate(timeout=120)
         assert c.returncode == 0, o + e
-        assert summary(o)["server"] == 3
+        assert summary(o)["server"] == 3 and summary(o)["odometry"] is True  # each frame went with the device's motion
         p.send_signal(signal.SIGINT)
         o, _ = p.communicate(timeout=60)
     finally:

@@ -107,6 +107,55 @@ def test_reacquires_at_the_last_good_pose_after_lost_without_a_database(rm_setup
     assert tr.process(f2.image, seq.camera).status == Status.LOST
 
 
+def test_odometry_carries_the_pose_through_lost_frames(rm_setup):
+    """With the device's odometry (``motion``), a LOST stretch does not cost the track: the pose is carried on by the
+    odometry (not reported) and the next good frame tracks from it, with no database and no re-acquisition at the
+    last good pose; without odometry, or once the carry has run out, the same frame stays LOST."""
+    from services.localize.render_match import RMConfig
+
+    renderer, ext, _, seq, _ = rm_setup
+    gt = seq.groundtruth.poses
+    frames = [seq.read(i) for i in range(7)]
+    grey = np.full_like(frames[0].image, 128)
+
+    def run(cfg: RMConfig, odometry: bool) -> list:
+        tr = RenderMatchTracker(renderer, ext, db=None, cfg=cfg)
+        out = [tr.process(frames[0].image, seq.camera, prior=gt[0], stamp=float(frames[0].stamp))]
+        for i in range(1, 7):  # frames 1-5 blank (a hand over the lens), frame 6 the camera's own
+            motion = gt[i - 1].inverse() @ gt[i] if odometry else None
+            out.append(tr.process(grey if i < 6 else frames[i].image, seq.camera, stamp=float(frames[i].stamp), motion=motion))
+        return out + [tr]
+
+    no_recover = RMConfig(recover_s=0.0)  # only the odometry can bring frame 6 back
+    *res, tr = run(no_recover, odometry=True)
+    assert res[0].T_wc is not None and all(r.status == Status.LOST and r.T_wc is None for r in res[1:6])
+    assert res[6].status == Status.RELOCALIZED and tr.relocalizations == 1 and tr.carried_s == 0.0
+    dt, dr = gt[6].distance_to(res[6].T_wc)
+    assert dt < 0.05 and dr < 1.0, (dt, dr)
+    assert run(no_recover, odometry=False)[6].status == Status.LOST
+    expired = run(RMConfig(recover_s=0.0, odometry_carry_s=0.05), odometry=True)  # 5 frames at 30 fps outlast it
+    assert expired[6].status == Status.LOST and expired[-1].T_last is None
+
+
+def test_localize_cli_takes_the_device_s_odometry(rm_setup, small_site, tmp_path, capsys):
+    from services.cli import main
+    from services.io.trajectory import Trajectory, write_tum
+    from services.sim.odometry import simulate_odometry
+
+    out, _, _ = small_site
+    _, _, _, seq, db_path = rm_setup
+    odo = simulate_odometry(seq.groundtruth, seed=1)
+    assert np.linalg.norm(odo.poses[0].t - seq.groundtruth.poses[0].t) > 1.0  # a frame of its own, not the scan's
+    write_tum(tmp_path / "odo.txt", odo)
+    args = ["localize", str(out / "scan.ply"), str(out / "seq_00"), "--db", str(db_path), "--frames", "6", "--no-camera-check"]
+    assert main(args + ["--out", str(tmp_path / "t.txt"), "--odometry", str(tmp_path / "odo.txt")]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["odometry"] is True and s["localized"] >= 5 and s["ape_none_trans_rmse_m"] < 0.05
+    write_tum(tmp_path / "other.txt", Trajectory(["1.0", "2.0"], odo.poses[:2]))  # stamps of no frame: a clear error
+    assert main(args + ["--out", str(tmp_path / "x.txt"), "--odometry", str(tmp_path / "other.txt")]) == 2
+    assert "none of its 2 stamps is a frame" in capsys.readouterr().err
+
+
 def test_blurs_keyframes_with_the_given_exposure_and_stays_accurate(rm_setup):
     renderer, ext, _, seq, _ = rm_setup
     from services.localize.render_match import RMConfig

@@ -31,6 +31,9 @@ def register(sub) -> None:
     p.add_argument("--deadline", type=float, default=200.0, help="ms to wait for each pose before using the local one (default 200)")
     p.add_argument("--fps", type=float, default=0.0, help="pace frames at this rate (default: as fast as replies come)")
     p.add_argument("--frames", type=int, help="only the first N frames")
+    p.add_argument("--odometry", metavar="TUM", help="the device's own odometry (VIO, wheels) for a recorded sequence, a TUM "
+                   "trajectory in any frame of its own with rgb.txt's stamps: each frame goes with its motion since the "
+                   "previous one, which the server predicts from and carries the pose on through LOST frames")
     p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a server before the first frame (default 5)")
     p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 configuration")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint (default tcp/127.0.0.1:7447)")
@@ -82,6 +85,14 @@ def run_stream(args) -> int:
         seq = _Camera(int(args.sequence), cam, args.frames)
     else:
         seq = open_sequence(args.sequence, camera=cam) if cam else open_sequence(args.sequence)
+    odometry = None
+    if args.odometry:
+        from services.io.trajectory import read_odometry
+
+        if isinstance(seq, _Camera):
+            raise CliError("--odometry is for a recorded sequence; a live device sends its motion with each frame "
+                           "(LocalizationClient.localize(..., motion=...))")
+        odometry = read_odometry(args.odometry, seq.stamps)
     client = LocalizationClient(make_config(args.zenoh_config, connect=args.connect), client_id=args.client_id,
                                 site=args.site, map_id=args.map_id, deadline_ms=args.deadline)
     try:
@@ -94,14 +105,14 @@ def run_stream(args) -> int:
                 d = client.download_bundle(d)
                 print(f"P&L map bundle downloaded to {d}", flush=True)
             fallback = load_local(d)
-        traj, st = stream_sequence(seq, client, fallback, args.out, frames=args.frames, fps=args.fps)
+        traj, st = stream_sequence(seq, client, fallback, args.out, frames=args.frames, fps=args.fps, odometry=odometry)
     finally:
         client.close()
     s = st.summary()
     print(f"{len(traj)}/{st.frames} frames with a pose: {st.server} from the server, {st.local} local "
           f"({st.missed} missed deadlines, {st.lost} lost, {st.switches} worker switches); {s['fps']} FPS, "
           f"round trip p50 {s['rtt_p50_ms']} ms p99 {s['rtt_p99_ms']} ms; sources in {sources_path(args.out)}")
-    summary = {"out": args.out, "poses": len(traj), **s}
+    summary = {"out": args.out, "poses": len(traj), "odometry": odometry is not None, **s}
     gt = getattr(seq, "groundtruth", None)
     if gt is not None and len(traj):
         from services.eval.ape import ape_first_frames

@@ -22,7 +22,7 @@ from protocol.messages import reason_kind
 from services.client.client import LocalizationClient, reply_pose
 from services.client.fallback import LocalFallback
 from services.geometry.se3 import Pose
-from services.io.trajectory import Trajectory, write_tum
+from services.io.trajectory import Trajectory, relative_motions, write_tum
 
 __all__ = ["StreamStats", "stream_sequence", "sources_path"]
 
@@ -79,8 +79,9 @@ def _frame_bytes(seq, i: int, image: np.ndarray):
 
 def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallback | None, out: str | Path | None = None,
                     frames: int | None = None, fps: float = 0.0, deadline_ms: float | None = None,
-                    on_frame=None) -> tuple[Trajectory, StreamStats]:
-    """Stream ``seq`` and write the trajectory + sources; ``fps`` > 0 paces frames at that rate."""
+                    on_frame=None, odometry: Trajectory | None = None) -> tuple[Trajectory, StreamStats]:
+    """Stream ``seq`` and write the trajectory + sources; ``fps`` > 0 paces frames at that rate. ``odometry``: the
+    device's own trajectory (any frame of its own): each frame is sent with its motion since the previous one."""
     from services.log import progress
 
     traj = Trajectory()
@@ -88,6 +89,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
     n = len(seq) if frames is None else min(len(seq), frames)
     t_start = time.perf_counter()
     period = 1.0 / fps if fps and fps > 0 else 0.0
+    motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else [None] * n
     for i, frame in enumerate(progress(seq, desc="streaming", total=n, unit="frame")):
         if i >= n:
             break
@@ -106,7 +108,8 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
             except ValueError:
                 stamp_f = float(i)
             t0 = time.perf_counter()
-            rep = client.localize(data, cam, stamp=stamp_f, stamp_text=frame.stamp, encoding=enc, deadline_ms=deadline_ms)
+            rep = client.localize(data, cam, stamp=stamp_f, stamp_text=frame.stamp, encoding=enc, deadline_ms=deadline_ms,
+                                  motion=motions[i])
             rtt = 1e3 * (time.perf_counter() - t0)
             if rep is None:
                 st.missed += 1

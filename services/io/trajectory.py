@@ -15,7 +15,7 @@ import numpy as np
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write_text
 
-__all__ = ["Trajectory", "TrajectoryError", "read_tum", "write_tum", "format_tum_line"]
+__all__ = ["Trajectory", "TrajectoryError", "read_tum", "write_tum", "format_tum_line", "relative_motions", "read_odometry"]
 
 
 class TrajectoryError(ValueError):
@@ -94,3 +94,26 @@ def write_tum(path: str | Path, traj: Trajectory | Iterable[tuple[str, Pose]], h
         lines += [f"# {h}" for h in header.splitlines()]
     lines += [format_tum_line(s, p) for s, p in traj]
     atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def relative_motions(traj: Trajectory, stamps: Iterable[str]) -> list[Pose | None]:
+    """For each of ``stamps`` (frames in order), the camera's motion since the previous one, ``T_prev^-1 @ T_now``,
+    from ``traj`` (a device's odometry, in any world frame of its own); None where either has no pose."""
+    poses = traj.as_dict()
+    out: list[Pose | None] = []
+    prev = None
+    for s in stamps:
+        now = poses.get(s)
+        out.append(prev.inverse() @ now if prev is not None and now is not None else None)
+        prev = now
+    return out
+
+
+def read_odometry(path: str | Path, stamps: list[str]) -> Trajectory:
+    """A device's odometry for a sequence (``--odometry``): a TUM trajectory in any frame of its own that shares
+    stamps with the sequence's rgb.txt, character for character."""
+    odo = read_tum(path)
+    if not set(odo.stamps) & set(stamps):
+        raise TrajectoryError(f"{path}: none of its {len(odo)} stamps is a frame of the sequence (stamps are copied from "
+                              f"rgb.txt character for character, e.g. {stamps[0] if stamps else '?'})")
+    return odo

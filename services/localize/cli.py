@@ -21,6 +21,7 @@ LOC_EPILOG = """\
 examples:
   cristal localize site/scan.ply site/seq_00 --method rm --db site/reloc.npz --out traj.txt
   cristal localize scan.ply walk.mp4 --method rm --db db.npz --out traj.txt --frames 200
+  cristal localize site/scan.ply site/seq_00 --method rm --db site/reloc.npz --odometry vio.txt --out traj.txt
   cristal localize site/map site/seq_00 --method pnl --map site/map --out traj.txt     Prebuild & Localize (CPU, no torch)
 
 Writes a TUM trajectory (camera-to-world in the scan frame; frames without a pose are absent),
@@ -71,6 +72,10 @@ def register(sub) -> None:
                         "aligning the frame to patches straight from the prediction first: slower; for comparisons")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="(--method rm) the same for the camera centre, in centimetres (default 1)")
+    p.add_argument("--odometry", metavar="TUM",
+                   help="(--method rm) the device's own odometry (VIO, wheels) as a TUM trajectory in any frame of its own, "
+                        "stamps as in rgb.txt: each frame's motion since the previous one predicts it, and carries the pose "
+                        "through LOST frames (up to 5 s) so tracking resumes without the database")
     p.add_argument("--no-camera-check", action="store_true",
                    help="(--method rm) skip the check, after localizing, that the frames agree with their camera.json "
                         "(a fit of the intrinsics on up to 12 localized frames; a few seconds)")
@@ -222,6 +227,7 @@ def run_localize(args) -> int:
         raise CliError("--method rm needs --db (a relocalization database from 'cristal build-db')")
     from services.io.scans import load_scan
     from services.io.sequence import open_sequence
+    from services.io.trajectory import read_odometry
     from services.localize.render_match import RenderMatchTracker, RMConfig
     from services.localize.runner import localize_and_report
     from services.relocalize.database import RelocDB
@@ -229,13 +235,14 @@ def run_localize(args) -> int:
 
     _torch_threads()
     seq = open_sequence(args.sequence)
+    odometry = read_odometry(args.odometry, seq.stamps) if args.odometry else None
     db = RelocDB.load(args.db)
     scan = load_scan(args.scan)
     renderer = Renderer(scan, device=args.device)
     cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
                    direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points)
     tracker = RenderMatchTracker(renderer, _tracking_extractor(renderer, args.max_side), db, cfg)
-    return localize_and_report(tracker, seq, args, args.method, stamped=True,
+    return localize_and_report(tracker, seq, args, args.method, stamped=True, odometry=odometry,
                                after=None if getattr(args, "no_camera_check", False) else lambda traj: _camera_check(tracker, seq, traj))
 
 

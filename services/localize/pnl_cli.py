@@ -16,6 +16,9 @@ def run_localize_pnl(args) -> int:
     from services.localize.runner import localize_and_report
     from services.prebuild.stella_map import MAP_FILE
 
+    if getattr(args, "odometry", None):
+        raise CliError("--odometry is for --method rm (the light P&L localizer predicts at constant velocity; a P&L server "
+                       "takes a client's odometry as a prior per frame)")
     map_dir = Path(args.map or args.scan)
     if not (map_dir / MAP_FILE).exists() and not (map_dir.is_file() and map_dir.suffix == ".msg"):
         raise CliError(f"--method pnl needs --map MAPDIR (a folder with {MAP_FILE} from 'cristal prebuild'); {map_dir} has none")

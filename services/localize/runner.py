@@ -15,12 +15,14 @@ def _seconds(stamp: str) -> float | None:
         return None
 
 
-def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamped: bool = False):
+def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamped: bool = False, odometry=None):
     """Run a localizer over the first ``n`` frames (``stamped``: pass each frame's capture time, which
-    Render & Match uses for constant velocity and motion blur). Returns (trajectory, status counts, mean
-    ms per stage, seconds, LOST frames per reason)."""
+    Render & Match uses for constant velocity and motion blur; ``odometry``: the device's own trajectory
+    (services.io.trajectory.Trajectory, any world frame), passed as each frame's ``motion`` since the previous
+    frame where both have one). Returns (trajectory, status counts, mean ms per stage, seconds, LOST frames
+    per reason)."""
     from protocol.messages import reason_kind
-    from services.io.trajectory import Trajectory
+    from services.io.trajectory import Trajectory, relative_motions
     from services.localize.status import Status
     from services.log import progress
 
@@ -28,11 +30,13 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     counts = {s: 0 for s in Status}
     stage: dict[str, float] = {}
     why: dict[str, int] = {}
+    motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else None
     t0 = time.perf_counter()
     for i, frame in enumerate(progress(seq, desc=progress_desc, total=n, unit="frame")):
         if i >= n:
             break
-        r = loc.process(frame.image, seq.camera, stamp=_seconds(frame.stamp)) if stamped else loc.process(frame.image, seq.camera)
+        kw = {} if motions is None else {"motion": motions[i]}
+        r = loc.process(frame.image, seq.camera, stamp=_seconds(frame.stamp), **kw) if stamped else loc.process(frame.image, seq.camera)
         counts[r.status] += 1
         reason = getattr(r, "reason", None) if r.status == Status.LOST else None
         if reason:
@@ -44,7 +48,7 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     return traj, counts, stage, time.perf_counter() - t0, why
 
 
-def localize_and_report(loc, seq, args, method: str, stamped: bool = False, after=None) -> int:
+def localize_and_report(loc, seq, args, method: str, stamped: bool = False, after=None, odometry=None) -> int:
     """``cristal localize``'s output contract for either method; exit code 0 when any frame got a pose.
     ``after(traj) -> dict``: a check run on the trajectory once timed (its fields join the summary)."""
     from services.cli import emit_summary
@@ -52,11 +56,11 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     from services.localize.status import Status
 
     n = min(len(seq), args.frames or len(seq))
-    traj, counts, stage, dt, why = localize_sequence(loc, seq, n, stamped=stamped)
+    traj, counts, stage, dt, why = localize_sequence(loc, seq, n, stamped=stamped, odometry=odometry)
     write_tum(args.out, traj, header=f"cristal localize --method {method}: camera-to-world in the scan frame")
     print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {counts[Status.LOST]} lost), "
           f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
-    summary = {"out": args.out, "method": method, "frames": n, "localized": len(traj),
+    summary = {"out": args.out, "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
                "relocalizations": counts[Status.RELOCALIZED], "lost": counts[Status.LOST], "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
     if why:
