@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -33,13 +34,14 @@ def main() -> None:
     ap.add_argument("--site", default="runs/bench-sim/office")
     ap.add_argument("--cold", type=int, default=40)
     ap.add_argument("--max-side", type=int, default=480)
+    ap.add_argument("--db", help="relocalization database (default: SITE/reloc.npz, built if missing)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     site = ensure_site(args.site)
     scan = load_scan(site / "scan.ply")
     renderer = Renderer(scan)
     ext = XFeatExtractor(device="cpu", top_k=1024, max_side=args.max_side)
-    db_path = site / "reloc.npz"
+    db_path = Path(args.db) if args.db else site / "reloc.npz"
     if not db_path.exists():
         build_database(renderer, sample_positions(scan), ext).save(db_path)
     db = RelocDB.load(db_path)
