@@ -117,6 +117,40 @@ def test_localizer_api_seed_and_lost_on_blank_frame(pnl_site, pnl_map):
     assert other.idx is loc.idx and other._extractors is not loc._extractors and other.T_last is None
 
 
+def test_odometry_carries_the_pose_through_lost_frames(pnl_site, pnl_map):
+    """As in Render & Match: with the device's odometry a LOST stretch keeps the pose (carried on by the odometry,
+    not reported) and the next good frame tracks from it; without odometry, or once the carry ran out, it cannot
+    (relocalization switched off, so only the carried pose can bring the frame back)."""
+    from services.geometry.se3 import Pose
+    from services.io.sequence import open_sequence
+    from services.localize.pnl import PnlConfig, PnlLocalizer, Status
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    frames = [seq.read(i) for i in range(6)]
+    gt = [seq.groundtruth_pose(f.stamp) for f in frames]
+    blank = np.full((cam.height, cam.width), 128, np.uint8)
+
+    def run(cfg: PnlConfig, odometry: bool):
+        loc = PnlLocalizer.load(pnl_map[0], cfg)
+        loc.seed(gt[0])
+        res = [loc.process(frames[0].image, cam, stamp=float(frames[0].stamp))]
+        for i in range(1, 6):  # frames 1-4 blank (a hand over the lens), frame 5 the camera's own
+            motion = gt[i - 1].inverse() @ gt[i] if odometry else None
+            res.append(loc.process(blank if i < 5 else frames[i].image, cam, motion=motion, stamp=float(frames[i].stamp)))
+        return res, loc
+
+    no_reloc = PnlConfig(reloc_min_inliers=10 ** 6)
+    res, loc = run(no_reloc, odometry=True)
+    assert res[0].T_wc is not None and all(r.status == Status.LOST and r.T_wc is None for r in res[1:5])
+    assert res[5].status == Status.RELOCALIZED and loc.carried_s == 0.0, res[5]
+    dt, dr = gt[5].distance_to(res[5].T_wc)
+    assert dt < 0.05 and dr < 1.0, (dt, dr)
+    assert run(no_reloc, odometry=False)[0][5].status == Status.LOST
+    expired, loc = run(PnlConfig(reloc_min_inliers=10 ** 6, odometry_carry_s=0.05), odometry=True)
+    assert expired[5].status == Status.LOST and loc.T_last is None
+
+
 def test_patches_of_another_map_are_refused(pnl_map, tmp_path):
     import shutil
 

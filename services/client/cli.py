@@ -33,7 +33,8 @@ def register(sub) -> None:
     p.add_argument("--frames", type=int, help="only the first N frames")
     p.add_argument("--odometry", metavar="TUM", help="the device's own odometry (VIO, wheels) for a recorded sequence, a TUM "
                    "trajectory in any frame of its own with rgb.txt's stamps: each frame goes with its motion since the "
-                   "previous one, which the server predicts from and carries the pose on through LOST frames")
+                   "previous one, which the server and the local fallback predict from and carry the pose on by through "
+                   "LOST frames")
     p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a server before the first frame (default 5)")
     p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 configuration")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint (default tcp/127.0.0.1:7447)")

@@ -57,13 +57,17 @@ class LocalFallback:
         if hasattr(self.loc, "reset"):
             self.loc.reset()
 
-    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None) -> LocalResult:
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, motion: Pose | None = None,
+                stamp: float | None = None) -> LocalResult:
+        """``motion``: the device's odometry since the previous frame (the localizer predicts from its last pose
+        with it, and carries that pose on through LOST frames); ``stamp``: capture time (s)."""
         t0 = time.perf_counter()
-        if prior is None and self.seeded_fresh:
+        if prior is None and self.seeded_fresh and motion is None:
             prior = self.T_seed  # the last server pose: one frame old at most while handing over
         self.seeded_fresh = False
         try:
-            r = self.loc.process(image, camera, prior)
+            r = self.loc.process(image, camera, prior, motion=motion, stamp=stamp) if motion is not None else \
+                self.loc.process(image, camera, prior)
         except Exception as e:  # noqa: BLE001
             self.errors += 1
             log.warning("local localizer failed on a frame: %s: %s", type(e).__name__, e)

@@ -101,12 +101,12 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
         T: Pose | None = None
         source, status, server, rtt = "-", "none", "-", float("nan")
         rep = None
+        try:
+            stamp_f = float(frame.stamp)
+        except ValueError:
+            stamp_f = float(i)
         if client is not None:
             data, enc = _frame_bytes(seq, i, frame.image)
-            try:
-                stamp_f = float(frame.stamp)
-            except ValueError:
-                stamp_f = float(i)
             t0 = time.perf_counter()
             rep = client.localize(data, cam, stamp=stamp_f, stamp_text=frame.stamp, encoding=enc, deadline_ms=deadline_ms,
                                   motion=motions[i])
@@ -137,7 +137,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
             if fallback is not None:
                 fallback.seed(T)
         elif fallback is not None:
-            lr = fallback.process(frame.image, cam)
+            lr = fallback.process(frame.image, cam, motion=motions[i], stamp=stamp_f)
             if lr.T_wc is not None:
                 T, source = lr.T_wc, "local"
                 st.local += 1

@@ -102,6 +102,8 @@ class PnlConfig:
     reloc_ambiguity: float = 0.8  # another place with this share of the best's inliers makes a relocalization ambiguous,
     reloc_cold_ambiguity: float = 0.5  # ... and so do two places over 2 m away with this share (services.relocalize.ambiguity)
     use_velocity: bool = True
+    odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for
+    #                                up to this long and the next frame tracks from it (as Render & Match does)
     cell_px: int = 24  # keypoint grid for window search
     cell_capacity: int = 8
     coarse_subsample: int = 2  # the wide-window pass searches every n-th visible landmark
@@ -269,6 +271,8 @@ class PnlLocalizer:
         self._inv_s2 = 1.0 / (orb.scale_factor ** (2 * np.arange(orb.num_levels)))
         self.T_last: Pose | None = None  # camera-to-world of the last localized frame
         self._vel: Pose | None = None  # T_cw(t) @ T_wc(t-1): the last frame-to-frame motion
+        self.carried_s = 0.0  # how long ``T_last`` has been carried through LOST frames by the device's odometry
+        self._stamp: float | None = None  # the last frame's capture time
         self._local_key: tuple | None = None
         self._local_rows = np.zeros(0, np.int64)
         self._local_P = np.zeros((0, 3))
@@ -307,11 +311,13 @@ class PnlLocalizer:
         """Forget the pose: the next frame relocalizes."""
         self.T_last = None
         self._vel = None
+        self.carried_s = 0.0
 
     def seed(self, T_wc: Pose) -> None:
         """Start tracking from an external pose (e.g. a server answer); no velocity is assumed."""
         self.T_last = T_wc
         self._vel = None
+        self.carried_s = 0.0
 
     def _direct_retry(self, fr: _Frame, pred: Pose, tm: dict):
         """The direct step from ``pred``; when it fails, once more with twice the patches: on a fast turn's blurred
@@ -708,18 +714,27 @@ class PnlLocalizer:
         return r
 
     # ---- the frame loop ---------------------------------------------------------------------------
-    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None) -> PnlResult:
-        """Localize one frame (grey or BGR uint8). ``prior``: a camera-to-world hint (odometry, server) for this frame."""
+    def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, motion: Pose | None = None,
+                stamp: float | None = None) -> PnlResult:
+        """Localize one frame (grey or BGR uint8). ``prior``: a camera-to-world hint (server) for this frame.
+        ``motion``: the camera's motion since the previous frame from the device's odometry (``T_prev^-1 @ T_now``):
+        it predicts the frame, and carries the pose on through LOST frames for up to ``odometry_carry_s``
+        (``stamp``: capture time in seconds, for that clock; frames/30 without)."""
         tm: dict[str, float] = {}
         t_start = time.perf_counter()
         c_start = time.thread_time()
         fr = self._frame(image, camera)
         status = Status.TRACKING
         r = None
+        dt = stamp - self._stamp if stamp is not None and self._stamp is not None and stamp > self._stamp else 1.0 / 30.0
+        self._stamp = stamp
         pred = prior
         if pred is None and self.T_last is not None:
             pred = self.T_last
-            if self.cfg.use_velocity and self._vel is not None:
+            if motion is not None:  # the device's odometry: this frame's own motion (blur too)
+                self._vel = motion
+                pred = self.T_last @ motion
+            elif self.cfg.use_velocity and self._vel is not None:
                 pred = self.T_last @ self._vel  # T_wc(t) = T_wc(t-1) @ (T_c(t-2)c(t-1))
         if pred is not None:
             if self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0:
@@ -736,12 +751,18 @@ class PnlLocalizer:
         tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
         tm["cpu_ms"] = 1e3 * (time.thread_time() - c_start)  # this thread's CPU time: one core's cost on a busy machine
         if not self._plausible(r):
-            self.T_last = None
+            carry = motion is not None and pred is not None and prior is None and self.carried_s + dt <= self.cfg.odometry_carry_s
+            self.T_last = pred if carry else None  # carried on by the odometry (not reported), or dropped
+            self.carried_s = self.carried_s + dt if carry else 0.0
             self._vel = None
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm,
                              reason=fr.reason or "no pose")
         R, t, n, rmse, sig_m, sig_deg, _ = r
         T_wc = Pose(R.T, -R.T @ t)
+        if self.carried_s > 0 and status == Status.TRACKING:  # tracked from a pose the odometry carried: re-acquired
+            status = Status.RELOCALIZED
+            self.relocalizations += int(self._good(r, fr))
+        self.carried_s = 0.0
         if self.T_last is not None and status == Status.TRACKING:  # (also weakly constrained: a fast pan keeps it)
             self._vel = self.T_last.inverse() @ T_wc
         else:

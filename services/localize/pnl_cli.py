@@ -12,13 +12,11 @@ log = logging.getLogger(__name__)
 def run_localize_pnl(args) -> int:
     from services.cli import CliError
     from services.io.sequence import open_sequence
+    from services.io.trajectory import read_odometry
     from services.localize.pnl import PnlConfig, PnlLocalizer
     from services.localize.runner import localize_and_report
     from services.prebuild.stella_map import MAP_FILE
 
-    if getattr(args, "odometry", None):
-        raise CliError("--odometry is for --method rm (the light P&L localizer predicts at constant velocity; a P&L server "
-                       "takes a client's odometry as a prior per frame)")
     map_dir = Path(args.map or args.scan)
     if not (map_dir / MAP_FILE).exists() and not (map_dir.is_file() and map_dir.suffix == ".msg"):
         raise CliError(f"--method pnl needs --map MAPDIR (a folder with {MAP_FILE} from 'cristal prebuild'); {map_dir} has none")
@@ -27,8 +25,9 @@ def run_localize_pnl(args) -> int:
 
         cv2.setNumThreads(int(args.threads))  # -j 1: the one-core figure of benchmarks/RESULTS.md
     seq = open_sequence(args.sequence)
+    odometry = read_odometry(args.odometry, seq.stamps) if getattr(args, "odometry", None) else None
     loc = PnlLocalizer.load(map_dir, PnlConfig(align=not getattr(args, "no_align", False),
                                                direct_landmarks=0 if getattr(args, "no_direct", False) else PnlConfig().direct_landmarks))
     if loc.patches is None:
         log.info("%s has no landmark patches (a map from before them, or from stella_vslam): keypoint measurements only", map_dir)
-    return localize_and_report(loc, seq, args, "pnl")
+    return localize_and_report(loc, seq, args, "pnl", odometry=odometry)

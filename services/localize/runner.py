@@ -36,7 +36,9 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
         if i >= n:
             break
         kw = {} if motions is None else {"motion": motions[i]}
-        r = loc.process(frame.image, seq.camera, stamp=_seconds(frame.stamp), **kw) if stamped else loc.process(frame.image, seq.camera)
+        if stamped or motions is not None:  # the capture time: constant velocity and blur (R&M), the odometry's clock
+            kw["stamp"] = _seconds(frame.stamp)
+        r = loc.process(frame.image, seq.camera, **kw)
         counts[r.status] += 1
         reason = getattr(r, "reason", None) if r.status == Status.LOST else None
         if reason:

@@ -115,18 +115,13 @@ class RMBackend:
 class _PnlTracker:
     def __init__(self, backend: "PnlBackend"):
         self.loc = backend.make()
-        self.T_last: Pose | None = None
 
     def reset(self) -> None:
         self.loc.reset()
-        self.T_last = None
 
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None,
                 stamp: float | None = None, exposure_s: float | None = None) -> TrackResult:
-        if prior is None and motion is not None and self.T_last is not None:
-            prior = self.T_last @ motion
-        r = self.loc.process(image, camera, prior)
-        self.T_last = r.T_wc
+        r = self.loc.process(image, camera, prior, motion=motion, stamp=stamp)  # odometry: predicts, carries through LOST
         return TrackResult(_status(r.status), r.T_wc, int(getattr(r, "inliers", 0)), float(getattr(r, "rmse_px", np.nan)),
                            timings=dict(getattr(r, "timings", {}) or {}), reason=getattr(r, "reason", None))
 
