@@ -62,6 +62,11 @@ def register(sub) -> None:
     p.add_argument("--port", type=int, default=0, help="router port on 127.0.0.1 (default: a free one)")
     p.add_argument("--keep-server", action="store_true", help="keep the router and server running afterwards (Ctrl-C stops)")
     p.add_argument("--device", default="auto", help="renderer/XFeat device (default: CUDA if available)")
+    p.add_argument("--odometry", nargs="?", const="sim", metavar="TUM",
+                   help="stream with the device's own odometry, as a headset's VIO or a robot's wheels give it: the server "
+                        "and the local fallback predict from it and carry the pose through LOST frames. Alone: simulated "
+                        "from the sequence's ground truth (services/sim/odometry.py: 0.03 deg and 1 %% of the step of noise "
+                        "per frame, 1 %% scale bias); or a TUM trajectory with the sequence's stamps")
     p.set_defaults(func=run)
 
 
@@ -169,6 +174,22 @@ def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, re
         patches.save(d / PATCH_FILE)
     atomic_write_text(stamp_path, json.dumps(stamp, indent=1) + "\n")
     return d, True
+
+
+def _odometry(arg: str | None, seq):
+    """``--odometry``: None, simulated from the sequence's ground truth ("sim"), or a TUM file."""
+    if arg is None:
+        return None
+    if arg != "sim":
+        from services.io.trajectory import read_odometry
+
+        return read_odometry(arg, seq.stamps)
+    if seq.groundtruth is None:
+        raise ValueError("--odometry alone simulates it from the sequence's groundtruth.txt, which this sequence lacks: "
+                         "give the device's odometry as a TUM file")
+    from services.sim.odometry import simulate_odometry
+
+    return simulate_odometry(seq.groundtruth)
 
 
 def free_port() -> int:
@@ -322,6 +343,7 @@ def run(args) -> int:
     seq = open_sequence(seq_dir)
     if seq.groundtruth is None:
         raise CliError(f"{seq_dir}: no groundtruth.txt to score against")
+    odometry = _odometry(args.odometry, seq)
     n = len(seq) if not args.frames else min(len(seq), args.frames)
     if n < 1:
         raise CliError("--frames must be at least 1")
@@ -388,7 +410,8 @@ def run(args) -> int:
                 poses[i] = (T, source)
 
         with clock.step("stream"):
-            traj, st = stream_sequence(seq, client, fallback, est_path, frames=n, on_frame=on_frame)
+            traj, st = stream_sequence(seq, client, fallback, est_path, frames=n, on_frame=on_frame,
+                                       odometry=odometry)
             time.sleep(0.2)  # the last publication in flight
 
         # ---- score, overlay, plots ------------------------------------------------------------
@@ -436,7 +459,8 @@ def run(args) -> int:
         summary = {"site": str(site), "simulated": simulated, "points": len(scan), "sequence": args.sequence, "frames": n,
                    "poses": len(traj), "estimate": str(est_path), "overlay": str(overlay) if overlay else None,
                    "plots": str(plots), "endpoint": endpoint, "published": published["n"],
-                   "local_fallback": fallback is not None, "method": "render-match over zenoh + local P&L", **s,
+                   "local_fallback": fallback is not None, "method": "render-match over zenoh + local P&L",
+                   "odometry": args.odometry, **s,
                    **{f"{k}_s": round(v, 1) for k, v in clock.wall.items()}, "total_s": round(wall, 1),
                    "cpu_s": round(cpu, 1)}
         for name, r in results.items():

@@ -62,7 +62,8 @@ def test_demo_runs_the_whole_loop_over_zenoh(demo_run):
 
 
 def test_keep_server_serves_another_client_and_stops_cleanly_on_ctrl_c(demo_run, small_site, tmp_path):
-    """A second run reuses the database and map; with --keep-server a `cristal stream` process uses its server; Ctrl-C ends it."""
+    """A second run (with simulated odometry) reuses the database and map; with --keep-server a `cristal stream` process
+    uses its server; Ctrl-C ends it."""
     import socket
 
     out, _, _ = demo_run
@@ -70,7 +71,7 @@ def test_keep_server_serves_another_client_and_stops_cleanly_on_ctrl_c(demo_run,
     env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE", CRISTAL_PROGRESS="0")
     with open(tmp_path / "demo.err", "w") as err:  # a file, not a pipe nobody reads
         p = subprocess.Popen([sys.executable, "-m", "services.cli", "demo", "--site", str(small_site[0]), "--out", str(out),
-                              "--frames", "2", "--keep-server", "--port", str(port), *SPACING],
+                              "--frames", "2", "--keep-server", "--port", str(port), "--odometry", *SPACING],
                              stdout=subprocess.PIPE, stderr=err, text=True, env=env)
     try:
         first = []
@@ -96,6 +97,7 @@ def test_keep_server_serves_another_client_and_stops_cleanly_on_ctrl_c(demo_run,
     assert p.returncode == 0, (tmp_path / "demo.err").read_text()
     s = summary(o)
     assert s["served_after"]["frames"] >= 5 and s["frames"] == 2  # its own 2 frames + the other client's 3
+    assert s["odometry"] == "sim" and s["server"] == 2  # streamed with simulated odometry (VIO) on the wire
     assert s["database_s"] < 10 and s["pnl_map_s"] < 5  # reused, not rebuilt
     with socket.socket() as sock:
         assert sock.connect_ex(("127.0.0.1", port)) != 0  # the router is gone
