@@ -6,11 +6,14 @@ Public API (used by the Zenoh client's local fallback)::
     from services.localize.pnl import PnlLocalizer, PnlConfig
     loc = PnlLocalizer.load(map_dir, PnlConfig())
     res = loc.process(image, camera, prior=None)   # res.status, res.T_wc, res.inliers, res.rmse_px, res.timings
+    res = loc.process(image, camera, motion=D, stamp=t)   # with the device's odometry D = T_prev^-1 @ T_now
     loc.reset(); loc.seed(T_wc)
 
-Per frame, with a pose to start from (the previous pose moved by the constant-velocity model, a client
-prior, or a seed), the landmarks of nearby keyframes that the predicted camera can see (distance inside
-the landmark's scale range, viewing angle within 60 degrees of its mean) are the local map.
+Per frame, with a pose to start from (the previous pose moved by the device's odometry or else the
+constant-velocity model, a client prior, or a seed), the landmarks of nearby keyframes that the predicted
+camera can see (distance inside the landmark's scale range, viewing angle within 60 degrees of its mean) are
+the local map. With odometry, a LOST frame's pose is carried on by it (up to ``odometry_carry_s``, not
+reported), so the next frame tracks from there rather than relocalizing.
 
 Keypoint tracking: stella_vslam-style ORB on the frame, keypoints undistorted with the frame's own
 intrinsics; each projected landmark looks for the best keypoint within a small window at a compatible

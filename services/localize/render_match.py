@@ -13,7 +13,8 @@ refines its pose. Gates on inliers, reprojection error and the pose's predicted 
 solutions into LOST, never a guess; a pose that is plausible (enough inliers, small error) but less
 certain than promised is not reported, yet tracking continues from it, so a few weak frames in a fast
 turn do not cost a relocalization. With no pose (first frame, after LOST) the relocalization database gives a coarse pose,
-which a render at that pose refines before tracking starts.
+which a render at that pose refines before tracking starts. With the device's own odometry (``motion``) a LOST
+frame's pose is carried on by it for a few seconds instead, unreported, and the next frame tracks from there.
 
 Three things keep it accurate where a plain render-and-match is not:
 - **Motion blur.** In a fast turn the live frame is blurred and its features move (measured: a
