@@ -137,6 +137,33 @@ def test_odometry_carries_the_pose_through_lost_frames(rm_setup):
     assert expired[6].status == Status.LOST and expired[-1].T_last is None
 
 
+def test_direct_tracking_takes_weaker_corners_when_a_strong_one_outshines_the_rest(rm_setup, site_480):
+    """Corner strength is relative to the render's strongest corner: in a close-up a few high-contrast edges (a label,
+    a printed checker) leave too few corners for direct tracking, and the weaker ones are taken then, not before."""
+    import dataclasses
+
+    from services.io.sequence import open_sequence
+    from services.localize.render_match import RMConfig, _Frame
+
+    renderer, ext, _, _, _ = rm_setup
+    _, out, cam, _ = site_480
+    seq = open_sequence(out / "seq")
+    counts = {}
+    for quality in ((0.005,), RMConfig().direct_corner_quality):
+        tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(direct_corner_quality=quality))
+        kf = tr._keyframe(seq.groundtruth.poses[0], _Frame(seq.read(0).image, cam, {}, None, 0.0, None))
+        plain = len(tr._direct_patches(kf)[0].lm_ids)
+        img = (128 + 0.4 * (kf.render.rgb.astype(np.float32) - 128)).astype(np.uint8)  # a dull close-up ...
+        img[20:44, 20:44] = 0
+        img[20:32, 20:32] = img[32:44, 32:44] = 255  # ... with a printed checker: one corner far stronger than any other
+        kf.render, kf.direct = dataclasses.replace(kf.render, rgb=img), None
+        counts[quality] = (plain, len(tr._direct_patches(kf)[0].lm_ids))
+    (plain, strict), (plain_default, default) = counts.values()
+    need = RMConfig().direct_min_inliers
+    assert plain == plain_default >= need  # a render with enough strong corners: the same patches either way
+    assert strict < need <= default, counts  # outshone: too few for direct tracking, unless weaker corners are taken
+
+
 def test_localize_cli_takes_the_device_s_odometry(rm_setup, small_site, tmp_path, capsys):
     from services.cli import main
     from services.io.trajectory import Trajectory, write_tum

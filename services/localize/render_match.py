@@ -143,6 +143,9 @@ class RMConfig:
     #                                 poses' ~1); 2 halves the RMSE on office seeds 2-3 but reports a quarter fewer frames
     direct_blur_power: float = 1.0  # a direct pose's covariance grows as (blur / blur_sigma_px)^this (XFeat's: ^2)
     direct_min_corner: float = 0.2  # those patches' corner score (0 edge or flat .. 0.5 isotropic corner)
+    direct_corner_quality: tuple[float, ...] = (0.005, 0.002)  # corner strength, relative to the render's strongest, for
+    #                                     those patches; the next only when the first leaves fewer than direct_min_inliers
+    #                                     (a close-up render: a few strong label edges outshine the rest)
     blur_probe_px: tuple[float, ...] = (0, 4, 8, 12, 16, 24, 32, 48)  # blur lengths (px at 640 wide) tried on the render
     #                                     at a relocalized pose to read the frame's blur from the image; () = off
     blur_probe_gain: float = 0.05  # ... the best length counts when it removes this share of the sharp render's misfit
@@ -494,16 +497,20 @@ class RenderMatchTracker:
             r = kf.render
             gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
             h, w = gray.shape
-            c = cv2.goodFeaturesToTrack(gray, maxCorners=8 * self.cfg.direct_points, qualityLevel=0.005,
-                                        minDistance=max(3.0, w / 80), blockSize=5)
-            uv = np.zeros((0, 2)) if c is None else c.reshape(-1, 2).astype(np.float64)
-            m = 12 * w / 640
-            uv = uv[(uv[:, 0] >= m) & (uv[:, 0] < w - 1 - m) & (uv[:, 1] >= m) & (uv[:, 1] < h - 1 - m)]
-            X, ok, planes = r.surface_points(uv, self.cfg.depth_radius, self.cfg.depth_max_residual)
-            uv, X, planes = uv[ok], X[ok], planes[ok]
-            patches = np.clip(sample_patches(gray, uv, 23) + 0.5, 0, 255).astype(np.uint8)
-            keep = np.flatnonzero(corner_scores(patches) >= self.cfg.direct_min_corner)[: self.cfg.direct_points]
-            log.debug("direct patches: %d corners, %d with depth, %d corner-like", 0 if c is None else len(c), len(uv), len(keep))
+            for quality in self.cfg.direct_corner_quality:  # weaker corners only where the strong ones cannot do
+                c = cv2.goodFeaturesToTrack(gray, maxCorners=8 * self.cfg.direct_points, qualityLevel=quality,
+                                            minDistance=max(3.0, w / 80), blockSize=5)
+                uv = np.zeros((0, 2)) if c is None else c.reshape(-1, 2).astype(np.float64)
+                m = 12 * w / 640
+                uv = uv[(uv[:, 0] >= m) & (uv[:, 0] < w - 1 - m) & (uv[:, 1] >= m) & (uv[:, 1] < h - 1 - m)]
+                X, ok, planes = r.surface_points(uv, self.cfg.depth_radius, self.cfg.depth_max_residual)
+                uv, X, planes = uv[ok], X[ok], planes[ok]
+                patches = np.clip(sample_patches(gray, uv, 23) + 0.5, 0, 255).astype(np.uint8)
+                keep = np.flatnonzero(corner_scores(patches) >= self.cfg.direct_min_corner)[: self.cfg.direct_points]
+                log.debug("direct patches at quality %g: %d corners, %d with depth, %d corner-like", quality,
+                          0 if c is None else len(c), len(uv), len(keep))
+                if len(keep) >= self.cfg.direct_min_inliers:
+                    break
             cam = r.camera
             normals = plane_normals(uv[keep], planes[keep], cam.fx, cam.fy, cam.cx, cam.cy) @ kf.T_wc.R.T  # world axes
             T_cw = kf.T_wc.inverse()
