@@ -161,7 +161,8 @@ class FrameRequest(_Msg):
     - ``prior``: optional camera-to-world pose hint (e.g. the client's own last pose when it moves to a new worker).
     - ``motion``: optional relative motion since the previous frame from the device's odometry, as
       ``T_prev_cur`` (the current camera in the previous camera's frame). The server predicts
-      ``T_wc = T_wc_prev @ motion`` when it has a previous pose.
+      ``T_wc = T_wc_prev @ motion`` when it has a previous pose, and after a LOST frame carries that pose on
+      with it for a few seconds (unreported), so tracking resumes without a relocalization.
     - ``exposure_s``: optional exposure time of this frame (seconds), when the camera reports it. Fast
       frames are blurred; the server blurs its render to match, with this time if given (otherwise it
       calibrates one per client from the first fast frames).
