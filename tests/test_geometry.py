@@ -138,3 +138,29 @@ def test_motion_blur_with_a_wild_pose_stays_finite_and_fast():
     out = motion_blur_linear(img, depth, cam, Pose.identity(), Pose.identity(), Pose.from_rotvec_t([0, 1.2, 0], [0, 0, 0.5]), 10)
     assert time.perf_counter() - t0 < 5.0
     assert np.isfinite(out).all()
+
+
+def test_odometry_check_stops_using_an_odometry_that_disagrees_with_the_tracked_motion():
+    """A device's odometry is used while its frame-to-frame motions agree with the tracked ones (a good or a poor
+    VIO); a broken one (a degree of error a frame) is not, and is used again once it agrees."""
+    import numpy as np
+
+    from services.geometry.se3 import Pose
+    from services.localize.odometry_check import OdometryCheck
+
+    rng = np.random.default_rng(0)
+    step = Pose.from_rotvec_t(np.radians([0.0, 1.5, 0.2]), [0.03, 0.0, 0.01])  # a walking camera's frame-to-frame motion
+
+    def noisy(rot_deg: float, frac: float) -> Pose:
+        return Pose.from_rotvec_t(np.radians(rng.normal(0, rot_deg, 3)), step.t * frac * rng.normal(0, 1, 3)) @ step
+
+    chk = OdometryCheck()
+    for _ in range(30):  # tracked motions carry ~0.05 deg / 5 mm of their own noise; a poor VIO 0.1 deg and 3 %
+        chk.update(noisy(0.05, 0.1), noisy(0.1, 0.03))
+        assert chk.trusted
+    for _ in range(10):  # broken: a degree a frame
+        chk.update(noisy(0.05, 0.1), noisy(1.0, 0.2))
+    assert not chk.trusted
+    for _ in range(10):  # recovered
+        chk.update(noisy(0.05, 0.1), noisy(0.03, 0.01))
+    assert chk.trusted

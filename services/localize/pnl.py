@@ -66,6 +66,7 @@ from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hammin
 from services.geometry.blur import blur_length_px
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
+from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only,
                                      undistorted_gray)
@@ -275,6 +276,7 @@ class PnlLocalizer:
         self.T_last: Pose | None = None  # camera-to-world of the last localized frame
         self._vel: Pose | None = None  # T_cw(t) @ T_wc(t-1): the last frame-to-frame motion
         self.carried_s = 0.0  # how long ``T_last`` has been carried through LOST frames by the device's odometry
+        self.odometry = OdometryCheck()  # whether the device's odometry agrees with the tracked motion (else unused)
         self._stamp: float | None = None  # the last frame's capture time
         self._local_key: tuple | None = None
         self._local_rows = np.zeros(0, np.int64)
@@ -306,6 +308,7 @@ class PnlLocalizer:
         new._local_rows = np.zeros(0, np.int64)
         new._local_P = np.zeros((0, 3))
         new.relocalizations = 0
+        new.odometry = OdometryCheck()
         new.reset()
         return new
 
@@ -730,6 +733,8 @@ class PnlLocalizer:
         status = Status.TRACKING
         r = None
         dt = stamp - self._stamp if stamp is not None and self._stamp is not None and stamp > self._stamp else 1.0 / 30.0
+        odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
+        motion = motion if self.odometry.trusted else None
         self._stamp = stamp
         pred = prior
         if pred is None and self.T_last is not None:
@@ -768,6 +773,8 @@ class PnlLocalizer:
         self.carried_s = 0.0
         if self.T_last is not None and status == Status.TRACKING:  # (also weakly constrained: a fast pan keeps it)
             self._vel = self.T_last.inverse() @ T_wc
+            if odometry is not None and self._good(r, fr):
+                self.odometry.update(self._vel, odometry)
         else:
             self._vel = None
         if not self._good(r, fr):  # weakly constrained: no pose reported, but tracking continues from it

@@ -64,6 +64,7 @@ from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
+from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
 from services.render.depth_sampling import plane_normals, support_fraction
@@ -288,6 +289,7 @@ class RenderMatchTracker:
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.lost_frames = 0
         self.carried_s = 0.0  # how long ``T_last`` has been carried through LOST frames by the device's odometry (0: tracked)
+        self.odometry = OdometryCheck()  # whether the device's odometry agrees with the tracked motion (else unused)
 
     def _lose(self) -> None:
         self.kf: Keyframe | None = None
@@ -815,6 +817,8 @@ class RenderMatchTracker:
         frame from the device's own odometry (``T_prev^-1 @ T_now``); it replaces the constant-velocity guess.
         """
         t_start = time.perf_counter()
+        odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
+        motion = motion if self.odometry.trusted else None
         consecutive = stamp is not None and self.stamp_last is not None and 0 < stamp - self.stamp_last < 0.5
         fr = _Frame(image, camera, {}, self.motion if consecutive else None,
                     (stamp - self.stamp_last) if consecutive else 0.0, exposure_s)
@@ -909,6 +913,8 @@ class RenderMatchTracker:
         self.motion_tracked = consecutive and status == Status.TRACKING
         if self.motion_tracked:
             self.motion = (self.T_last.inverse() @ r.T_wc, stamp - self.stamp_last)
+            if odometry is not None and self._good(r):
+                self.odometry.update(self.motion[0], odometry)
         elif ((status == Status.RELOCALIZED or self.T_last is None) and self.recent is not None and stamp is not None
               and self.recent[1] is not None and 0 < stamp - self.recent[1] <= self.cfg.gap_motion_s):
             # back after a short LOST gap (typically a fast turn), reported or only plausible: the mean motion over
