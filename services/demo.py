@@ -66,7 +66,7 @@ def register(sub) -> None:
                    help="stream with the device's own odometry, as a headset's VIO or a robot's wheels give it: the server "
                         "and the local fallback predict from it and carry the pose through LOST frames. Alone: simulated "
                         "from the sequence's ground truth (services/sim/odometry.py: 0.03 deg and 1 %% of the step of noise "
-                        "per frame, 1 %% scale bias); or a TUM trajectory with the sequence's stamps")
+                        "per frame, 1 %% scale bias); or a TUM trajectory on the frames' clock (interpolated at each frame)")
     p.set_defaults(func=run)
 
 

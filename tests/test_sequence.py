@@ -99,3 +99,39 @@ def test_video_input(tmp_path):
     with pytest.raises(SequenceError, match="not a sequence folder"):
         (tmp_path / "x.txt").write_text("")
         open_sequence(tmp_path / "x.txt")
+
+
+def test_odometry_logged_at_its_own_rate_is_interpolated_at_the_frames(tmp_path):
+    """A VIO logs poses at its own rate and clock: --odometry takes the pose at each frame's time, interpolated
+    between the samples around it (none outside the log or across a gap), in the device's own world frame."""
+    import numpy as np
+    import pytest
+
+    from services.geometry.se3 import Pose
+    from services.io.trajectory import Trajectory, TrajectoryError, read_odometry, relative_motions, write_tum
+
+    def truth(t: float) -> Pose:  # a camera turning and walking
+        return Pose.from_rotvec_t([0.0, 0.3 * t, 0.05 * t], [0.8 * t, 0.1 * np.sin(t), 0.0])
+
+    offset = Pose.from_rotvec_t([0.2, -0.1, 1.0], [5.0, -3.0, 1.0])  # the device's own world frame
+    t_odo = np.arange(0.0, 2.0, 0.01) + 100.004  # 100 Hz, not on the frames' stamps
+    t_odo = t_odo[(t_odo < 100.9) | (t_odo > 101.3)]  # a 0.4 s gap in the log
+    write_tum(tmp_path / "vio.txt", Trajectory([f"{t:.6f}" for t in t_odo], [offset @ truth(t - 100) for t in t_odo]))
+    frames = [f"{100 + k / 30:.6f}" for k in range(-3, 66)]  # 30 fps, starting before the log
+    odo = read_odometry(tmp_path / "vio.txt", frames)
+    got = set(odo.stamps)
+    assert frames[0] not in got and frames[3] not in got and frames[4] in got  # before the log: none
+    assert f"{100 + 33 / 30:.6f}" not in got  # in the gap: none
+    motions = relative_motions(odo, frames)
+    checked = 0
+    for k, m in enumerate(motions):
+        if m is None:
+            continue
+        t0, t1 = float(frames[k - 1]) - 100, float(frames[k]) - 100
+        dt, dr = m.distance_to(truth(t0).inverse() @ truth(t1))
+        assert dt < 2e-4 and dr < 0.02, (k, dt, dr)
+        checked += 1
+    assert checked > 40
+    write_tum(tmp_path / "bad.txt", Trajectory(["2.0", "1.0"], [Pose.identity(), Pose.identity()]))
+    with pytest.raises(TrajectoryError, match="must increase"):
+        read_odometry(tmp_path / "bad.txt", frames)

@@ -32,7 +32,8 @@ def register(sub) -> None:
     p.add_argument("--fps", type=float, default=0.0, help="pace frames at this rate (default: as fast as replies come)")
     p.add_argument("--frames", type=int, help="only the first N frames")
     p.add_argument("--odometry", metavar="TUM", help="the device's own odometry (VIO, wheels) for a recorded sequence, a TUM "
-                   "trajectory in any frame of its own with rgb.txt's stamps: each frame goes with its motion since the "
+                   "trajectory in any frame of its own on the frames' clock (interpolated at each frame): each frame goes "
+                   "with its motion since the "
                    "previous one, which the server and the local fallback predict from and carry the pose on by through "
                    "LOST frames")
     p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a server before the first frame (default 5)")

@@ -109,11 +109,31 @@ def relative_motions(traj: Trajectory, stamps: Iterable[str]) -> list[Pose | Non
     return out
 
 
-def read_odometry(path: str | Path, stamps: list[str]) -> Trajectory:
-    """A device's odometry for a sequence (``--odometry``): a TUM trajectory in any frame of its own that shares
-    stamps with the sequence's rgb.txt, character for character."""
+def read_odometry(path: str | Path, stamps: list[str], max_gap_s: float = 0.2) -> Trajectory:
+    """A device's odometry for a sequence (``--odometry``): a TUM trajectory in any frame of its own, returned at the
+    sequence's frame stamps. A frame whose stamp the file has (character for character) takes that pose; any other
+    takes the pose interpolated between the samples around its time (a VIO logs at its own rate), when they are at
+    most ``max_gap_s`` apart; frames outside the odometry's time span, or in a gap, get none."""
     odo = read_tum(path)
-    if not set(odo.stamps) & set(stamps):
-        raise TrajectoryError(f"{path}: none of its {len(odo)} stamps is a frame of the sequence (stamps are copied from "
-                              f"rgb.txt character for character, e.g. {stamps[0] if stamps else '?'})")
-    return odo
+    exact = odo.as_dict()
+    t = np.array([float(s) for s in odo.stamps])  # read_tum checked they are numbers
+    if len(t) > 1 and np.any(np.diff(t) <= 0):
+        raise TrajectoryError(f"{path}: timestamps must increase (line order), as a device logs them")
+    out = Trajectory()
+    for s in stamps:
+        if s in exact:
+            out.append(s, exact[s])
+            continue
+        try:
+            f = float(s)
+        except ValueError:
+            continue
+        k = int(np.searchsorted(t, f))
+        if 0 < k < len(t) and t[k] - t[k - 1] <= max_gap_s:
+            out.append(s, odo.poses[k - 1].interpolate(odo.poses[k], (f - t[k - 1]) / (t[k] - t[k - 1])))
+    if not len(out):
+        span = f"{odo.stamps[0]}..{odo.stamps[-1]}" if len(odo) else "no poses"
+        raise TrajectoryError(f"{path}: its {len(odo)} poses ({span}) cover none of the sequence's frames "
+                              f"({stamps[0] if stamps else '?'}..{stamps[-1] if stamps else '?'}): stamps in seconds, "
+                              f"on the frames' clock")
+    return out

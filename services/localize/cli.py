@@ -73,9 +73,10 @@ def register(sub) -> None:
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="(--method rm) the same for the camera centre, in centimetres (default 1)")
     p.add_argument("--odometry", metavar="TUM",
-                   help="the device's own odometry (VIO, wheels) as a TUM trajectory in any frame of its own, stamps as "
-                        "in rgb.txt: each frame's motion since the previous one predicts it, and carries the pose through "
-                        "LOST frames (up to 5 s) so tracking resumes without relocalizing")
+                   help="the device's own odometry (VIO, wheels) as a TUM trajectory in any frame of its own, on the "
+                        "frames' clock (logged at any rate: interpolated at each frame): each frame's motion since the "
+                        "previous one predicts it, and carries the pose through LOST frames (up to 5 s) so tracking "
+                        "resumes without relocalizing")
     p.add_argument("--no-camera-check", action="store_true",
                    help="(--method rm) skip the check, after localizing, that the frames agree with their camera.json "
                         "(a fit of the intrinsics on up to 12 localized frames; a few seconds)")
