@@ -158,9 +158,11 @@ def test_odometry_check_stops_using_an_odometry_that_disagrees_with_the_tracked_
     for _ in range(30):  # tracked motions carry ~0.05 deg / 5 mm of their own noise; a poor VIO 0.1 deg and 3 %
         chk.update(noisy(0.05, 0.1), noisy(0.1, 0.03))
         assert chk.trusted
+    assert chk.use(step) is step and chk.unused == 0
     for _ in range(10):  # broken: a degree a frame
         chk.update(noisy(0.05, 0.1), noisy(1.0, 0.2))
     assert not chk.trusted
+    assert chk.use(step) is None and chk.use(None) is None and chk.unused == 1  # set aside, and counted
     for _ in range(10):  # recovered
         chk.update(noisy(0.05, 0.1), noisy(0.03, 0.01))
     assert chk.trusted

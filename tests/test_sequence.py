@@ -132,6 +132,13 @@ def test_odometry_logged_at_its_own_rate_is_interpolated_at_the_frames(tmp_path)
         assert dt < 2e-4 and dr < 0.02, (k, dt, dr)
         checked += 1
     assert checked > 40
+    # the same log in OpenGL camera axes (x right, y up, z backward: ARKit, ARCore) gives the same motions
+    gl = Pose(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
+    write_tum(tmp_path / "vio-gl.txt", Trajectory([f"{t:.6f}" for t in t_odo], [offset @ truth(t - 100) @ gl for t in t_odo]))
+    same = relative_motions(read_odometry(tmp_path / "vio-gl.txt", frames, axes="opengl"), frames)
+    assert all((a is None) == (b is None) and (a is None or max(a.distance_to(b)) < 1e-6) for a, b in zip(motions, same))
+    wrong = relative_motions(read_odometry(tmp_path / "vio-gl.txt", frames), frames)  # read as OpenCV axes: not the motion
+    assert max(m.distance_to(w)[1] for m, w in zip(motions, wrong) if m is not None) > 0.5
     write_tum(tmp_path / "bad.txt", Trajectory(["2.0", "1.0"], [Pose.identity(), Pose.identity()]))
     with pytest.raises(TrajectoryError, match="must increase"):
         read_odometry(tmp_path / "bad.txt", frames)

@@ -36,6 +36,9 @@ def register(sub) -> None:
                    "with its motion since the "
                    "previous one, which the server and the local fallback predict from and carry the pose on by through "
                    "LOST frames")
+    p.add_argument("--odometry-axes", choices=["opencv", "opengl"], default="opencv",
+                   help="the camera axes of the odometry's poses: opencv (x right, y down, z forward; default) or opengl "
+                        "(x right, y up, z backward: ARKit, ARCore)")
     p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a server before the first frame (default 5)")
     p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 configuration")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint (default tcp/127.0.0.1:7447)")
@@ -94,7 +97,7 @@ def run_stream(args) -> int:
         if isinstance(seq, _Camera):
             raise CliError("--odometry is for a recorded sequence; a live device sends its motion with each frame "
                            "(LocalizationClient.localize(..., motion=...))")
-        odometry = read_odometry(args.odometry, seq.stamps)
+        odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes)
     client = LocalizationClient(make_config(args.zenoh_config, connect=args.connect), client_id=args.client_id,
                                 site=args.site, map_id=args.map_id, deadline_ms=args.deadline)
     try:

@@ -15,7 +15,8 @@ import numpy as np
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write_text
 
-__all__ = ["Trajectory", "TrajectoryError", "read_tum", "write_tum", "format_tum_line", "relative_motions", "read_odometry"]
+__all__ = ["Trajectory", "TrajectoryError", "read_tum", "write_tum", "format_tum_line", "relative_motions", "read_odometry",
+           "ODOMETRY_AXES"]
 
 
 class TrajectoryError(ValueError):
@@ -109,12 +110,23 @@ def relative_motions(traj: Trajectory, stamps: Iterable[str]) -> list[Pose | Non
     return out
 
 
-def read_odometry(path: str | Path, stamps: list[str], max_gap_s: float = 0.2) -> Trajectory:
+ODOMETRY_AXES = {  # the odometry's camera axes -> OpenCV's (x right, y down, z forward)
+    "opencv": np.eye(3),
+    "opengl": np.diag([1.0, -1.0, -1.0]),  # x right, y up, z backward (ARKit, ARCore, most game engines' cameras)
+}
+
+
+def read_odometry(path: str | Path, stamps: list[str], max_gap_s: float = 0.2, axes: str = "opencv") -> Trajectory:
     """A device's odometry for a sequence (``--odometry``): a TUM trajectory in any frame of its own, returned at the
     sequence's frame stamps. A frame whose stamp the file has (character for character) takes that pose; any other
     takes the pose interpolated between the samples around its time (a VIO logs at its own rate), when they are at
-    most ``max_gap_s`` apart; frames outside the odometry's time span, or in a gap, get none."""
+    most ``max_gap_s`` apart; frames outside the odometry's time span, or in a gap, get none. ``axes``: the camera
+    axes its poses use (``ODOMETRY_AXES``); returned in OpenCV's, as every pose here."""
+    if axes not in ODOMETRY_AXES:
+        raise TrajectoryError(f"odometry axes must be one of {', '.join(ODOMETRY_AXES)}, got {axes!r}")
     odo = read_tum(path)
+    flip = Pose(ODOMETRY_AXES[axes], np.zeros(3))
+    odo = Trajectory(odo.stamps, [T @ flip for T in odo.poses])
     exact = odo.as_dict()
     t = np.array([float(s) for s in odo.stamps])  # read_tum checked they are numbers
     if len(t) > 1 and np.any(np.diff(t) <= 0):

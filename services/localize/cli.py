@@ -77,6 +77,9 @@ def register(sub) -> None:
                         "frames' clock (logged at any rate: interpolated at each frame): each frame's motion since the "
                         "previous one predicts it, and carries the pose through LOST frames (up to 5 s) so tracking "
                         "resumes without relocalizing")
+    p.add_argument("--odometry-axes", choices=["opencv", "opengl"], default="opencv",
+                   help="the camera axes of the odometry's poses: opencv (x right, y down, z forward; the default, as "
+                        "every pose here) or opengl (x right, y up, z backward: ARKit, ARCore, game engines)")
     p.add_argument("--no-camera-check", action="store_true",
                    help="(--method rm) skip the check, after localizing, that the frames agree with their camera.json "
                         "(a fit of the intrinsics on up to 12 localized frames; a few seconds)")
@@ -236,7 +239,7 @@ def run_localize(args) -> int:
 
     _torch_threads()
     seq = open_sequence(args.sequence)
-    odometry = read_odometry(args.odometry, seq.stamps) if args.odometry else None
+    odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes) if args.odometry else None
     db = RelocDB.load(args.db)
     scan = load_scan(args.scan)
     renderer = Renderer(scan, device=args.device)

@@ -38,6 +38,14 @@ class OdometryCheck:
         self._rot: deque[float] = deque(maxlen=cfg.window)
         self._trans: deque[float] = deque(maxlen=cfg.window)
         self.trusted = True
+        self.unused = 0  # frames whose odometry was set aside
+
+    def use(self, motion: Pose | None) -> Pose | None:
+        """The frame's odometry motion if it can be trusted now, else None (counted in ``unused``)."""
+        if motion is not None and not self.trusted:
+            self.unused += 1
+            return None
+        return motion
 
     def reset(self) -> None:
         self._rot.clear()

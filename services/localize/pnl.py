@@ -734,7 +734,7 @@ class PnlLocalizer:
         r = None
         dt = stamp - self._stamp if stamp is not None and self._stamp is not None and stamp > self._stamp else 1.0 / 30.0
         odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
-        motion = motion if self.odometry.trusted else None
+        motion = self.odometry.use(motion)
         self._stamp = stamp
         pred = prior
         if pred is None and self.T_last is not None:

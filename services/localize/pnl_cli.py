@@ -25,7 +25,7 @@ def run_localize_pnl(args) -> int:
 
         cv2.setNumThreads(int(args.threads))  # -j 1: the one-core figure of benchmarks/RESULTS.md
     seq = open_sequence(args.sequence)
-    odometry = read_odometry(args.odometry, seq.stamps) if getattr(args, "odometry", None) else None
+    odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes) if getattr(args, "odometry", None) else None
     loc = PnlLocalizer.load(map_dir, PnlConfig(align=not getattr(args, "no_align", False),
                                                direct_landmarks=0 if getattr(args, "no_direct", False) else PnlConfig().direct_landmarks))
     if loc.patches is None:

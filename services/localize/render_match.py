@@ -818,7 +818,7 @@ class RenderMatchTracker:
         """
         t_start = time.perf_counter()
         odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
-        motion = motion if self.odometry.trusted else None
+        motion = self.odometry.use(motion)
         consecutive = stamp is not None and self.stamp_last is not None and 0 < stamp - self.stamp_last < 0.5
         fr = _Frame(image, camera, {}, self.motion if consecutive else None,
                     (stamp - self.stamp_last) if consecutive else 0.0, exposure_s)

@@ -65,6 +65,11 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     summary = {"out": args.out, "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
                "relocalizations": counts[Status.RELOCALIZED], "lost": counts[Status.LOST], "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
+    unused = getattr(getattr(loc, "odometry", None), "unused", 0) if odometry is not None else 0
+    if unused:
+        print(f"the odometry disagreed with the tracked motion and was set aside on {unused} frames: check its axes "
+              f"(--odometry-axes) and that its clock is the frames'")
+        summary["odometry_unused_frames"] = unused
     if why:
         print("lost: " + ", ".join(f"{v} {k}" for k, v in sorted(why.items(), key=lambda kv: -kv[1])))
         summary["lost_reasons"] = why
