@@ -71,6 +71,16 @@ def parse_pose(text: str, option: str = "--pose"):
         raise CliError(f"{option}: {e} (expected 'tx ty tz qx qy qz qw')") from None
 
 
+def add_odometry_args(p: argparse.ArgumentParser, use: str) -> None:
+    """``--odometry`` and ``--odometry-axes`` (localize, stream): ``use`` says what the command does with it."""
+    p.add_argument("--odometry", metavar="TUM",
+                   help="the device's own odometry (VIO, wheels): a TUM trajectory in any frame of its own, on the frames' "
+                        "clock, logged at any rate (interpolated at each frame); " + use)
+    p.add_argument("--odometry-axes", choices=["opencv", "opengl"], default="opencv",
+                   help="the camera axes of the odometry's poses: opencv (x right, y down, z forward; the default, as "
+                        "every pose here) or opengl (x right, y up, z backward: ARKit, ARCore, game engines)")
+
+
 def emit_summary(summary: dict) -> None:
     """The last line of every job's stdout: one JSON object, machine-readable."""
     print(json.dumps(summary, sort_keys=True, default=float), flush=True)

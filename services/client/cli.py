@@ -18,6 +18,8 @@ With --map DIR: a DIR holding map.msg is used as is; otherwise the bundle is dow
 
 
 def register(sub) -> None:
+    from services.cli import add_odometry_args
+
     p = sub.add_parser("stream", help="stream a sequence / video / camera to the server (with local P&L fallback)",
                        description="Localize a sequence through the cristal service over Zenoh.", epilog=EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -31,14 +33,8 @@ def register(sub) -> None:
     p.add_argument("--deadline", type=float, default=200.0, help="ms to wait for each pose before using the local one (default 200)")
     p.add_argument("--fps", type=float, default=0.0, help="pace frames at this rate (default: as fast as replies come)")
     p.add_argument("--frames", type=int, help="only the first N frames")
-    p.add_argument("--odometry", metavar="TUM", help="the device's own odometry (VIO, wheels) for a recorded sequence, a TUM "
-                   "trajectory in any frame of its own on the frames' clock (interpolated at each frame): each frame goes "
-                   "with its motion since the "
-                   "previous one, which the server and the local fallback predict from and carry the pose on by through "
-                   "LOST frames")
-    p.add_argument("--odometry-axes", choices=["opencv", "opengl"], default="opencv",
-                   help="the camera axes of the odometry's poses: opencv (x right, y down, z forward; default) or opengl "
-                        "(x right, y up, z backward: ARKit, ARCore)")
+    add_odometry_args(p, "for a recorded sequence: each frame goes with its motion since the previous one, which the "
+                         "server and the local fallback predict from and carry the pose on by through LOST frames")
     p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a server before the first frame (default 5)")
     p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 configuration")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint (default tcp/127.0.0.1:7447)")

@@ -32,6 +32,8 @@ and, when the sequence has a groundtruth.txt, the APE against it. Ends with a on
 
 
 def register(sub) -> None:
+    from services.cli import add_odometry_args
+
     b = sub.add_parser("build-db", help="build the relocalization database of a scan (XFeat on cubemap renders)",
                        description="Build the Render & Match relocalization database.", epilog=DB_EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -72,14 +74,8 @@ def register(sub) -> None:
                         "aligning the frame to patches straight from the prediction first: slower; for comparisons")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="(--method rm) the same for the camera centre, in centimetres (default 1)")
-    p.add_argument("--odometry", metavar="TUM",
-                   help="the device's own odometry (VIO, wheels) as a TUM trajectory in any frame of its own, on the "
-                        "frames' clock (logged at any rate: interpolated at each frame): each frame's motion since the "
-                        "previous one predicts it, and carries the pose through LOST frames (up to 5 s) so tracking "
-                        "resumes without relocalizing")
-    p.add_argument("--odometry-axes", choices=["opencv", "opengl"], default="opencv",
-                   help="the camera axes of the odometry's poses: opencv (x right, y down, z forward; the default, as "
-                        "every pose here) or opengl (x right, y up, z backward: ARKit, ARCore, game engines)")
+    add_odometry_args(p, "each frame's motion since the previous one predicts it, and carries the pose through LOST "
+                         "frames (up to 5 s) so tracking resumes without relocalizing")
     p.add_argument("--no-camera-check", action="store_true",
                    help="(--method rm) skip the check, after localizing, that the frames agree with their camera.json "
                         "(a fit of the intrinsics on up to 12 localized frames; a few seconds)")
