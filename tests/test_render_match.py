@@ -71,6 +71,22 @@ def test_relocalizes_a_cold_frame_and_refuses_garbage(rm_setup):
     assert tr.process(noise, seq.camera).status == Status.LOST
 
 
+def test_a_weak_relocalization_says_why_with_its_numbers_after_the_kind(rm_setup):
+    """LOST frames are counted by the kind of their reason (lost_reasons): the inlier counts follow the kind."""
+    from protocol.messages import reason_kind
+    from services.localize.render_match import RMConfig, _Frame
+
+    renderer, ext, db, seq, _ = rm_setup
+    f = seq.read(7)
+    probe = RenderMatchTracker(renderer, ext, db)
+    fr = _Frame(f.image, seq.camera, {}, None, 0.0, None)
+    best = db.hypotheses(probe._live(fr, probe._reloc_scale(seq.camera)), seq.camera, 8, 6)[0][0].n_inliers
+    tr = RenderMatchTracker(renderer, ext, db, RMConfig(reloc_min_inliers=best + 1))  # the best place falls just short
+    r = tr.process(f.image, seq.camera)
+    assert r.status == Status.LOST and reason_kind(r.reason) == "too few inliers in the database", r.reason
+    assert f"has {best}, a pose needs {best + 1}" in r.reason
+
+
 def test_localize_cli_writes_tum_and_reports_ape(rm_setup, small_site, tmp_path, capsys):
     from services.cli import main
     from services.io.trajectory import read_tum

@@ -47,11 +47,6 @@ class OdometryCheck:
             return None
         return motion
 
-    def reset(self) -> None:
-        self._rot.clear()
-        self._trans.clear()
-        self.trusted = True
-
     def update(self, tracked: Pose, odometry: Pose) -> None:
         """One motion between two well-tracked frames (``T_prev^-1 @ T_now``) and the odometry's for the same frames."""
         dt, dr = tracked.distance_to(odometry)
