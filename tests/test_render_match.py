@@ -368,6 +368,34 @@ def test_a_cold_frame_needs_a_clear_margin_over_look_alikes_elsewhere(rm_setup):
     assert near is not None and G7.distance_to(near.T_wc)[0] < 0.05
 
 
+def test_a_weak_top_of_the_database_ranking_widens_the_search(rm_setup):
+    """The global descriptor ranks a place's best view low at times (office frame 143: 26 inliers in the top 8, 62
+    from a view ranked below). When no view of the top reloc_candidates gives a pose enough inliers, the
+    top reloc_widen are solved before the frame is given up."""
+    import dataclasses
+
+    from services.localize.render_match import _Frame
+
+    renderer, ext, db, seq, _ = rm_setup
+    f7, G7 = seq.read(7), seq.groundtruth.poses[7]
+    probe = RenderMatchTracker(renderer, ext, db)
+    feats = probe._live(_Frame(f7.image, seq.camera, {}, None, 0.0, None), probe._reloc_scale(seq.camera))
+    need = RMConfig().reloc_min_inliers
+    strong = [v for _, v in db._solve_views(feats, seq.camera, range(db.n_views), need, 3.0)]
+    assert strong
+    vlad = db.vlad.copy()
+    vlad[strong] *= -1.0  # the views that could give a pose: ranked last by the global descriptor
+    demoted = dataclasses.replace(db, vlad=vlad)
+    assert not set(demoted.candidates(feats, RMConfig().reloc_candidates).tolist()) & set(strong)
+
+    def cold(widen):
+        return RenderMatchTracker(renderer, ext, demoted, RMConfig(reloc_widen=widen)).process(f7.image, seq.camera)
+
+    assert cold(0).status == Status.LOST
+    r = cold(demoted.n_views)
+    assert r.status == Status.RELOCALIZED and G7.distance_to(r.T_wc)[0] < 0.05
+
+
 def _turned(db, deg: float, centre, keep: float = 1.0):
     """``db`` and a copy of it (views and points) turned by ``deg`` about the vertical through ``centre``."""
     from services.geometry.se3 import Pose, rotvec_to_rotmat

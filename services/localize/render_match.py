@@ -88,7 +88,9 @@ class RMConfig:
     rerender_inlier_ratio: float = 0.4  # ... or inliers fell below this fraction of the keyframe's first match
     max_holes: float = 0.35  # a keyframe render with more pixels than this beyond depth_radius of any point is redone at half resolution ...
     coarse_levels: int = 2  # ... at most this many times (sparse scans, far surfaces, views through windows)
-    reloc_candidates: int = 8
+    reloc_candidates: int = 8  # database views (by global descriptor) solved for a coarse pose ...
+    reloc_widen: int = 32  # ... or this many when none of those reaches the inliers a pose needs: the place's best view
+    #                        may rank lower (office frame 143: 26 inliers in the top 8, 62 from a view ranked below)
     reloc_px_ratio: float = 2.5  # a relocalizing frame is matched to the database at most this many times the faces'
     #                              pixels per radian (XFeat matches poorly across larger scale changes: a 1280x720
     #                              frame matched at full size, 6x the 320 px faces, relocalized nowhere for 70 frames;
@@ -726,6 +728,8 @@ class RenderMatchTracker:
         floor = min(need, int(min(ambiguity, far or ambiguity) * cfg.reloc_min_inliers))  # rivals may be weaker than the best
         within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
         hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
+        if (not hyps or hyps[0][0].n_inliers < need) and cfg.reloc_widen > cfg.reloc_candidates:
+            hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within)
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
