@@ -729,7 +729,8 @@ class RenderMatchTracker:
         within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
         hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
         if (not hyps or hyps[0][0].n_inliers < need) and cfg.reloc_widen > cfg.reloc_candidates:
-            hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within)
+            hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within,
+                                      widen=hyps, skip=cfg.reloc_candidates)
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
