@@ -143,7 +143,7 @@ def test_odometry_carries_the_pose_through_lost_frames(pnl_site, pnl_map):
     no_reloc = PnlConfig(reloc_min_inliers=10 ** 6)
     res, loc = run(no_reloc, odometry=True)
     assert res[0].T_wc is not None and all(r.status == Status.LOST and r.T_wc is None for r in res[1:5])
-    assert res[5].status == Status.RELOCALIZED and loc.carried_s == 0.0, res[5]
+    assert res[5].status == Status.RELOCALIZED and loc.carry.seconds == 0.0, res[5]
     dt, dr = gt[5].distance_to(res[5].T_wc)
     assert dt < 0.05 and dr < 1.0, (dt, dr)
     assert run(no_reloc, odometry=False)[0][5].status == Status.LOST

@@ -145,7 +145,7 @@ def test_odometry_carries_the_pose_through_lost_frames(rm_setup):
     no_recover = RMConfig(recover_s=0.0)  # only the odometry can bring frame 6 back
     *res, tr = run(no_recover, odometry=True)
     assert res[0].T_wc is not None and all(r.status == Status.LOST and r.T_wc is None for r in res[1:6])
-    assert res[6].status == Status.RELOCALIZED and tr.relocalizations == 1 and tr.carried_s == 0.0
+    assert res[6].status == Status.RELOCALIZED and tr.relocalizations == 1 and tr.carry.seconds == 0.0
     dt, dr = gt[6].distance_to(res[6].T_wc)
     assert dt < 0.05 and dr < 1.0, (dt, dr)
     assert run(no_recover, odometry=False)[6].status == Status.LOST

@@ -66,6 +66,7 @@ from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hammin
 from services.geometry.blur import blur_length_px
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
+from services.localize.carry import OdometryCarry
 from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only,
@@ -275,7 +276,7 @@ class PnlLocalizer:
         self._inv_s2 = 1.0 / (orb.scale_factor ** (2 * np.arange(orb.num_levels)))
         self.T_last: Pose | None = None  # camera-to-world of the last localized frame
         self._vel: Pose | None = None  # T_cw(t) @ T_wc(t-1): the last frame-to-frame motion
-        self.carried_s = 0.0  # how long ``T_last`` has been carried through LOST frames by the device's odometry
+        self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried on through LOST frames by the odometry
         self.odometry = OdometryCheck()  # whether the device's odometry agrees with the tracked motion (else unused)
         self._stamp: float | None = None  # the last frame's capture time
         self._local_key: tuple | None = None
@@ -317,13 +318,13 @@ class PnlLocalizer:
         """Forget the pose: the next frame relocalizes."""
         self.T_last = None
         self._vel = None
-        self.carried_s = 0.0
+        self.carry = OdometryCarry(self.cfg.odometry_carry_s)
 
     def seed(self, T_wc: Pose) -> None:
         """Start tracking from an external pose (e.g. a server answer); no velocity is assumed."""
         self.T_last = T_wc
         self._vel = None
-        self.carried_s = 0.0
+        self.carry = OdometryCarry(self.cfg.odometry_carry_s)
 
     def _direct_retry(self, fr: _Frame, pred: Pose, tm: dict):
         """The direct step from ``pred``; when it fails, once more with twice the patches: on a fast turn's blurred
@@ -759,18 +760,16 @@ class PnlLocalizer:
         tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
         tm["cpu_ms"] = 1e3 * (time.thread_time() - c_start)  # this thread's CPU time: one core's cost on a busy machine
         if not self._plausible(r):
-            carry = motion is not None and pred is not None and prior is None and self.carried_s + dt <= self.cfg.odometry_carry_s
-            self.T_last = pred if carry else None  # carried on by the odometry (not reported), or dropped
-            self.carried_s = self.carried_s + dt if carry else 0.0
+            # carried on by the odometry (not reported), or dropped
+            self.T_last = self.carry.lost(pred if motion is not None and prior is None else None, dt)
             self._vel = None
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm,
                              reason=fr.reason or "no pose")
         R, t, n, rmse, sig_m, sig_deg, _ = r
         T_wc = Pose(R.T, -R.T @ t)
-        if self.carried_s > 0 and status == Status.TRACKING:  # tracked from a pose the odometry carried: re-acquired
+        if self.carry.tracked() and status == Status.TRACKING:  # tracked from a pose the odometry carried: re-acquired
             status = Status.RELOCALIZED
             self.relocalizations += int(self._good(r, fr))
-        self.carried_s = 0.0
         if self.T_last is not None and status == Status.TRACKING:  # (also weakly constrained: a fast pan keeps it)
             self._vel = self.T_last.inverse() @ T_wc
             if odometry is not None and self._good(r, fr):

@@ -64,6 +64,7 @@ from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
+from services.localize.carry import OdometryCarry
 from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
@@ -290,7 +291,7 @@ class RenderMatchTracker:
         #                                                                   camera's world velocity then (if tracked)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.lost_frames = 0
-        self.carried_s = 0.0  # how long ``T_last`` has been carried through LOST frames by the device's odometry (0: tracked)
+        self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried on through LOST frames by the device's odometry
         self.odometry = OdometryCheck()  # whether the device's odometry agrees with the tracked motion (else unused)
 
     def _lose(self) -> None:
@@ -781,15 +782,6 @@ class RenderMatchTracker:
             return None
         return r
 
-    def _carry(self, T: Pose | None, stamp: float | None, dt: float) -> None:
-        """After a LOST frame: keep the pose the device's odometry gives it (``T``) as the one the next frame tracks
-        from, for up to ``odometry_carry_s`` (odometry drifts; after that the database decides). Not reported."""
-        dt = dt if dt > 0 else 1.0 / 30.0
-        if T is None or self.carried_s + dt > self.cfg.odometry_carry_s:
-            self.carried_s = 0.0
-            return
-        self.T_last, self.stamp_last, self.carried_s = T, stamp, self.carried_s + dt
-
     @staticmethod
     def _same_place(a: PnpResult, b: PnpResult) -> bool:
         """Two verified poses of one place (within 0.3 m and 5 deg: renders at both matched the frame)."""
@@ -909,11 +901,12 @@ class RenderMatchTracker:
             if self.T_last is not None:
                 self.recent, self.lost_frames = (self.T_last, self.stamp_last), 0
             self._lose()
-            self._carry(carry, stamp, fr.dt_next)
+            self.T_last = self.carry.lost(carry, fr.dt_next)
+            self.stamp_last = stamp if self.T_last is not None else None
             reason = fr.reason or ("no database to relocalize from" if self.db is None else "no pose")
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
                                float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm, reason=reason)
-        reacquired = self.carried_s > 0 and status == Status.TRACKING  # tracked from a pose the odometry carried
+        reacquired = self.carry.tracked() and status == Status.TRACKING  # tracked from a pose the odometry carried
         status = Status.RELOCALIZED if reacquired else status
         self.motion_tracked = consecutive and status == Status.TRACKING
         if self.motion_tracked:
@@ -929,7 +922,7 @@ class RenderMatchTracker:
         else:
             self.motion = None
         T_prev = self.T_last
-        self.T_last, self.stamp_last, self.recent, self.carried_s = r.T_wc, stamp, None, 0.0
+        self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
         # else weakly constrained, or where the motion cannot have taken it: no pose reported, but tracking continues
         good = self._good(r) and (status != Status.TRACKING or self._consistent(r, predicted, fr.dt_next))
         self.sigma_last = r.sigma_t_m
