@@ -26,7 +26,7 @@ class GroundTruthLocal:
     def seed(self, T):
         self.seeds += 1
 
-    def process(self, image, camera, prior):
+    def process(self, image, camera, prior, motion=None, stamp=None):
         self.calls += 1
         i = self.i  # set by the stream loop's on_frame hook below
         from services.client.fallback import LocalResult

@@ -3,8 +3,9 @@
 The client needs three things from a local localizer: ``seed(T_wc)`` with each server pose (so
 it is warm when needed), ``process(image, camera)`` for a frame the server did not localize, and
 ``reset()``. :func:`load_local` wraps :class:`services.localize.pnl.PnlLocalizer` (issue 5); any
-object with ``process(image, camera, prior) -> result`` (``.status``, ``.T_wc``, ``.inliers``) and
-optionally ``seed``/``reset`` fits :class:`LocalFallback`.
+object with ``process(image, camera, prior, motion=, stamp=) -> result`` (``.status``, ``.T_wc``, ``.inliers``;
+``motion``: the device's odometry since the previous frame or None, ``stamp``: capture time in seconds or None)
+and optionally ``seed``/``reset`` fits :class:`LocalFallback`.
 """
 
 from __future__ import annotations
@@ -66,8 +67,7 @@ class LocalFallback:
             prior = self.T_seed  # the last server pose: one frame old at most while handing over
         self.seeded_fresh = False
         try:
-            r = self.loc.process(image, camera, prior, motion=motion, stamp=stamp) if motion is not None else \
-                self.loc.process(image, camera, prior)
+            r = self.loc.process(image, camera, prior, motion=motion, stamp=stamp)
         except Exception as e:  # noqa: BLE001
             self.errors += 1
             log.warning("local localizer failed on a frame: %s: %s", type(e).__name__, e)
