@@ -841,7 +841,9 @@ class RenderMatchTracker:
             direct = self.cfg.direct_points > 0
             if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
                 new_kf = None
-                if direct and kf is not None:  # a new render, tracked into directly: XFeat only if that fails
+                # a new render, tracked into directly (XFeat only if that fails): after a tracked frame, or from where
+                # the odometry carried a LOST one (its frames in a whip pan were XFeat's alone, too blurred to report)
+                if direct and (kf is not None or self.carry.seconds > 0):
                     new_kf = self._keyframe(T_pred, fr)
                     r = self._direct(new_kf, fr, T_pred)
                     if self._good(r) and not self._far(r.T_wc, new_kf):
