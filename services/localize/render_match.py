@@ -63,8 +63,8 @@ from services.geometry.blur import blur_length_px, motion_blur_linear
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
-from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
 from services.localize.carry import OdometryCarry
+from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
 from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
@@ -291,7 +291,7 @@ class RenderMatchTracker:
         #                                                                   camera's world velocity then (if tracked)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.lost_frames = 0
-        self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried on through LOST frames by the device's odometry
+        self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried through LOST frames by the odometry
         self.odometry = OdometryCheck()  # whether the device's odometry agrees with the tracked motion (else unused)
 
     def _lose(self) -> None:

@@ -138,10 +138,11 @@ class RelocDB:
         again): a view a metre from a close-up camera shares few features with it (12-25 inliers, yet
         within 5 cm / 2 degrees), where ``localize`` needs 30 to trust a pose it cannot check.
         ``within`` = (position, radius): poses further from it are not hypotheses (the camera cannot be there).
-        ``widen``, ``skip``: the answer of a call for the top ``skip`` views, widened to the top ``k`` (those not solved again)."""
+        ``widen``, ``skip``: the answer of a call for the top ``skip`` views, widened to the top ``k`` (those are not
+        solved again)."""
         order = self.candidates(feats, k, near)[skip:]
-        results = sorted(list(widen or []) + _inside(self._solve_views(feats, camera, order, min_inliers, max_error_px), within),
-                         key=lambda rv: -rv[0].n_inliers)
+        solved = _inside(self._solve_views(feats, camera, order, min_inliers, max_error_px), within)
+        results = sorted(list(widen or []) + solved, key=lambda rv: -rv[0].n_inliers)
         places: list[tuple[PnpResult, int]] = []
         for r, v in results:
             if all(_distinct(r.T_wc, p.T_wc) for p, _ in places):
