@@ -140,3 +140,17 @@ def test_alignment_of_a_smeared_frame_with_smeared_templates():
         errs[name] = (ok.mean(), np.median(np.linalg.norm(q[ok] - truth[ok], axis=1)) if ok.any() else np.inf)
     assert errs["smeared"][0] > 0.7 and errs["smeared"][1] < 0.15, errs
     assert errs["smeared"][1] < errs["sharp"][1] or errs["smeared"][0] > errs["sharp"][0] + 0.2, errs
+
+
+def test_sample_patches_takes_more_patches_than_one_opencv_remap_can():
+    """Patches are stacked into one remap, whose maps OpenCV limits to 32767 rows: 2000 patches of 23 px
+    (46000 rows) crashed direct tracking with 300 corners. Each patch at an integer centre is the image crop."""
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (300, 400)).astype(np.uint8)
+    uv = np.column_stack([rng.integers(11, 389, 2000), rng.integers(11, 289, 2000)]).astype(np.float64)
+    p = sample_patches(img, uv, 23)
+    assert p.shape == (2000, 23, 23)
+    for k in (0, 1424, 1425, 1999):  # either side of a chunk's end
+        x, y = int(uv[k, 0]), int(uv[k, 1])
+        np.testing.assert_array_equal(p[k], img[y - 11:y + 12, x - 11:x + 12].astype(np.float32))
+    assert sample_patches(img, np.zeros((0, 2)), 23).shape == (0, 23, 23)

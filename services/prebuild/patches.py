@@ -101,12 +101,17 @@ def sample_patches(img: np.ndarray, centres: np.ndarray, size: int) -> np.ndarra
     """(N, size, size) float32 bilinear samples of ``img`` on a pixel grid centred at each of ``centres`` (N, 2)."""
     h = (size - 1) / 2.0
     o = np.arange(size, dtype=np.float32) - np.float32(h)
-    n = len(centres)
-    mx = np.broadcast_to(centres[:, 0, None, None].astype(np.float32) + o[None, None, :], (n, size, size))
-    my = np.broadcast_to(centres[:, 1, None, None].astype(np.float32) + o[None, :, None], (n, size, size))
-    out = cv2.remap(np.asarray(img, np.float32), np.ascontiguousarray(mx.reshape(n * size, size)),
-                    np.ascontiguousarray(my.reshape(n * size, size)), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(n, size, size)
+    src = np.asarray(img, np.float32)
+    step = max(1, (32767 - 1) // size)  # one remap's map is at most 32767 rows (OpenCV): patches stacked in chunks
+    out = np.empty((len(centres), size, size), np.float32)
+    for i in range(0, len(centres), step):
+        c = centres[i:i + step]
+        n = len(c)
+        mx = np.broadcast_to(c[:, 0, None, None].astype(np.float32) + o[None, None, :], (n, size, size))
+        my = np.broadcast_to(c[:, 1, None, None].astype(np.float32) + o[None, :, None], (n, size, size))
+        out[i:i + n] = cv2.remap(src, np.ascontiguousarray(mx.reshape(n * size, size)), np.ascontiguousarray(
+            my.reshape(n * size, size)), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(n, size, size)
+    return out
 
 
 def _template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, K: np.ndarray,
