@@ -139,8 +139,10 @@ class RMConfig:
     ransac_min_iterations: int = 100  # while tracking (relocalization keeps poselib's 1000)
     lk_window: int = 15  # patch (pixels at the render's resolution) re-aligning each match by Lucas-Kanade; 0 = off
     lk_max_px: float = 2.0  # a match whose patch lands further than this from its keypoint keeps the keypoint
-    direct_points: int = 150  # tracking first aligns the frame to this many corner patches of the keyframe render
-    #                           from the prediction (no XFeat on the frame); 0 = off (see _direct)
+    direct_points: int = 300  # tracking first aligns the frame to this many corner patches of the keyframe render
+    #                           from the prediction (no XFeat on the frame); 0 = off (see _direct). 300, not 150: in
+    #                           a fast turn's blur only some converge (whip pan with odometry: 20 of 30 frames
+    #                           reported instead of 11), and the walks gained 1-19 frames on 7 of 10 benchmark runs
     direct_min_inliers: int = 60  # a direct pose needs this many aligned patches, else features decide (with 40-45 of
     #                              150 it slid 1-5 cm over 4 frames at a predicted 0.6 cm, office seed 2)
     match_sigma_scale: float = 1.0  # XFeat poses' covariance x this^2: against ground truth their errors run ~2 sigma (direct
