@@ -115,6 +115,7 @@ def test_localizer_api_seed_and_lost_on_blank_frame(pnl_site, pnl_map):
 
     other = copy.copy(loc)  # the server shares one loaded map between clients
     assert other.idx is loc.idx and other._extractors is not loc._extractors and other.T_last is None
+    assert other.carry is not loc.carry and other.odometry is not loc.odometry  # per-client tracking state
 
 
 def test_odometry_carries_the_pose_through_lost_frames(pnl_site, pnl_map):

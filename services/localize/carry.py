@@ -25,12 +25,17 @@ class OdometryCarry:
         None when there is none or the carry has gone on too long."""
         dt = dt if dt > 0 else 1.0 / 30.0
         if T is None or self.seconds + dt > self.limit_s:
-            self.seconds = 0.0
+            self.reset()
             return None
         self.seconds += dt
         return T
 
+    def reset(self) -> None:
+        """No pose is carried (the track was dropped or seeded)."""
+        self.seconds = 0.0
+
     def tracked(self) -> bool:
         """A frame got a pose: whether it was tracked from a carried one (a re-acquisition). Ends the carry."""
-        carried, self.seconds = self.seconds > 0, 0.0
+        carried = self.seconds > 0
+        self.reset()
         return carried

@@ -312,6 +312,8 @@ class PnlLocalizer:
         new._local_P = np.zeros((0, 3))
         new.relocalizations = 0
         new.odometry = OdometryCheck()
+        new.carry = OdometryCarry(self.cfg.odometry_carry_s)  # its own: reset() only clears it
+        new._stamp = None
         new.reset()
         return new
 
@@ -320,13 +322,13 @@ class PnlLocalizer:
         """Forget the pose: the next frame relocalizes."""
         self.T_last = None
         self._vel = None
-        self.carry = OdometryCarry(self.cfg.odometry_carry_s)
+        self.carry.reset()
 
     def seed(self, T_wc: Pose) -> None:
         """Start tracking from an external pose (e.g. a server answer); no velocity is assumed."""
         self.T_last = T_wc
         self._vel = None
-        self.carry = OdometryCarry(self.cfg.odometry_carry_s)
+        self.carry.reset()
 
     def _direct_retry(self, fr: _Frame, pred: Pose, tm: dict):
         """The direct step from ``pred``; when it fails, once more with twice the patches: on a fast turn's blurred

@@ -504,11 +504,11 @@ class RenderMatchTracker:
             r = kf.render
             gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
             h, w = gray.shape
+            m = 12 * w / 640  # a patch's margin from the image border
             for quality in self.cfg.direct_corner_quality:  # weaker corners only where the strong ones cannot do
                 c = cv2.goodFeaturesToTrack(gray, maxCorners=8 * self.cfg.direct_points, qualityLevel=quality,
                                             minDistance=max(3.0, w / 80), blockSize=5)
                 uv = np.zeros((0, 2)) if c is None else c.reshape(-1, 2).astype(np.float64)
-                m = 12 * w / 640
                 uv = uv[(uv[:, 0] >= m) & (uv[:, 0] < w - 1 - m) & (uv[:, 1] >= m) & (uv[:, 1] < h - 1 - m)]
                 X, ok, planes = r.surface_points(uv, self.cfg.depth_radius, self.cfg.depth_max_residual)
                 uv, X, planes = uv[ok], X[ok], planes[ok]
@@ -731,7 +731,7 @@ class RenderMatchTracker:
         hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
         if (not hyps or hyps[0][0].n_inliers < need) and cfg.reloc_widen > cfg.reloc_candidates:
             hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within,
-                                      widen=hyps, skip=cfg.reloc_candidates)
+                                      known=hyps, skip=cfg.reloc_candidates)
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:

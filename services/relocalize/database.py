@@ -130,7 +130,7 @@ class RelocDB:
 
     def hypotheses(self, feats: Features, camera: Camera, k: int = 8, min_inliers: int = 12, max_error_px: float = 3.0,
                    near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None,
-                   widen: list[tuple[PnpResult, int]] | None = None, skip: int = 0) -> list[tuple[PnpResult, int]]:
+                   known: list[tuple[PnpResult, int]] | None = None, skip: int = 0) -> list[tuple[PnpResult, int]]:
         """Coarse poses from the top-``k`` views with at least ``min_inliers`` inliers, the best per place
         (places differ by more than 1 m or 20 degrees), best first, each with its view.
 
@@ -138,11 +138,11 @@ class RelocDB:
         again): a view a metre from a close-up camera shares few features with it (12-25 inliers, yet
         within 5 cm / 2 degrees), where ``localize`` needs 30 to trust a pose it cannot check.
         ``within`` = (position, radius): poses further from it are not hypotheses (the camera cannot be there).
-        ``widen``, ``skip``: the answer of a call for the top ``skip`` views, widened to the top ``k`` (those are not
-        solved again)."""
+        ``known``, ``skip``: the answer of a call for the top ``skip`` views; the search widens to the top ``k`` without
+        solving those again."""
         order = self.candidates(feats, k, near)[skip:]
         solved = _inside(self._solve_views(feats, camera, order, min_inliers, max_error_px), within)
-        results = sorted(list(widen or []) + solved, key=lambda rv: -rv[0].n_inliers)
+        results = sorted(list(known or []) + solved, key=lambda rv: -rv[0].n_inliers)
         places: list[tuple[PnpResult, int]] = []
         for r, v in results:
             if all(_distinct(r.T_wc, p.T_wc) for p, _ in places):
