@@ -73,3 +73,10 @@ def progress(it: Iterable[T], desc: str, total: int | None = None, unit: str = "
     from tqdm import tqdm
 
     yield from tqdm(it, desc=desc, total=total, unit=unit, disable=not _enabled(), dynamic_ncols=True, leave=False)
+
+
+def progress_bar(desc: str, total: int | None = None, unit: str = "it"):
+    """The same bar, advanced by hand (``with progress_bar(...) as bar: bar.update(k)``)."""
+    from tqdm import tqdm
+
+    return tqdm(desc=desc, total=total, unit=unit, disable=not _enabled(), dynamic_ncols=True, leave=False)

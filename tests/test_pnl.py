@@ -200,3 +200,21 @@ def test_tracking_modes_against_ground_truth(pnl_site, pnl_map, mode):
     assert a.trans_rmse < limit[0] and a.rot_rmse_deg < limit[1], (mode, a.trans_rmse, a.rot_rmse_deg)
     assert not any(used_orb) if mode.startswith("direct") else all(used_orb)
 
+
+
+def test_backfill_tracks_back_from_a_later_pose_with_the_light_localizer(pnl_site, pnl_map):
+    """``--backfill`` drives P&L the same way as Render & Match: frames without a forward pose are tracked back from the
+    first pose after them, each within a few centimetres of the ground truth."""
+    from services.io.sequence import open_sequence
+    from services.localize.backfill import backfill
+    from services.localize.pnl import PnlConfig, PnlLocalizer
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    gt = seq.groundtruth.poses
+    poses = [None] * 5 + list(gt[5:])
+    st = backfill(PnlLocalizer.load(pnl_map[0], PnlConfig()), lambda i: seq.read(i).image, cam, poses,
+                  [float(s) for s in seq.stamps])
+    assert st.stretches == 1 and st.filled >= 4 and st.rejected == 0
+    err = np.array([gt[i].distance_to(poses[i]) for i in range(5) if poses[i] is not None])
+    assert err[:, 0].max() < 0.03 and err[:, 1].max() < 0.5, err

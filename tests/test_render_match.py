@@ -762,3 +762,74 @@ def test_localize_flags_frames_that_disagree_with_their_camera(rm_setup, site_48
     print(checks)
     assert checks["right"]["ok"] and checks["right"]["focal_off"] < 0.006
     assert not checks["wrong"]["ok"] and checks["wrong"]["focal_off"] > 0.01
+
+
+def test_backfill_tracks_back_into_frames_recorded_before_the_first_pose(rm_setup):
+    """``cristal localize --backfill``: frames before the first pose (an aisle that cannot be relocalized) get poses
+    tracked backwards from it, each within the forward gates' accuracy; a stretch between two forward poses is dropped
+    when its track back misses the pose before it."""
+    from services.localize.backfill import backfill
+
+    renderer, ext, _, seq, _ = rm_setup
+    gt = seq.groundtruth.poses
+    n = len(seq)
+    stamps = [float(s) for s in seq.stamps]
+    image = lambda i: seq.read(i).image  # noqa: E731
+    tr = RenderMatchTracker(renderer, ext, db=None)  # no database: frames 0-5 cannot be relocalized
+    poses = [tr.process(image(i), seq.camera, stamp=stamps[i], prior=gt[6] if i == 6 else None).T_wc for i in range(n)]
+    assert poses[:6] == [None] * 6 and sum(p is not None for p in poses[6:]) >= 5  # a pose from frame 6 on
+    st = backfill(tr, image, seq.camera, poses, stamps)
+    assert st.stretches >= 1 and st.filled >= 5 and st.rejected == 0
+    err = np.array([gt[i].distance_to(poses[i]) for i in range(6) if poses[i] is not None])
+    assert len(err) >= 5 and err[:, 0].max() < 0.05 and err[:, 1].max() < 0.8, err
+
+    # frames 3-5 LOST between two forward poses: kept when the track back lands on frame 2's pose, not when it is 10 cm off
+    from services.geometry.se3 import Pose
+
+    for shift, kept in ((0.0, True), (0.10, False)):
+        p = [gt[i] for i in range(n)]
+        p[3:6] = [None] * 3
+        p[2] = Pose(p[2].R, p[2].t + [shift, 0, 0])
+        st = backfill(tr, image, seq.camera, p, stamps)
+        assert (sum(x is not None for x in p[3:6]) >= 2) == kept and (st.rejected > 0) == (not kept), (shift, st)
+
+
+def test_backfill_reads_back_a_video_s_lost_frames(rm_setup, small_site, tmp_path):
+    """A video has no random access: the frames the backward pass needs are kept (losslessly) in the pass in time
+    order. Here the first 5 frames come while the database is out of reach (as in an aisle it cannot tell apart)."""
+    import cv2
+
+    from services.io.sequence import open_sequence
+    from services.localize.backfill import BackfillStats
+    from services.localize.runner import localize_sequence
+
+    renderer, ext, db, seq, _ = rm_setup
+    path = tmp_path / "walk.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (seq.camera.width, seq.camera.height))
+    if not vw.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG video")
+    for i in range(len(seq)):
+        vw.write(seq.read(i).image)
+    vw.release()
+    seq.camera.save(tmp_path / "walk.camera.json")
+    video = open_sequence(path)
+
+    class DatabaseFromFrame5:
+        def __init__(self):
+            self.tr, self.seen = RenderMatchTracker(renderer, ext, db=None), 0
+
+        def process(self, image, camera, **kw):
+            self.seen += 1
+            self.tr.db = db if self.seen > 5 else None
+            return self.tr.process(image, camera, **kw)
+
+        def reset(self):
+            self.tr.reset()
+
+    for back in (None, BackfillStats()):
+        traj, *_ = localize_sequence(DatabaseFromFrame5(), video, len(video), stamped=True, backfill=back)
+        stamps = set(traj.stamps)
+        assert (len(stamps & set(video.stamps[:5])) >= 4) == (back is not None), (back, traj.stamps)
+    gt = seq.groundtruth.poses
+    err = np.array([gt[video.stamps.index(s)].distance_to(T) for s, T in traj])
+    assert len(err) >= len(video) - 2 and np.sqrt((err[:, 0] ** 2).mean()) < 0.05, err

@@ -23,6 +23,8 @@ examples:
   cristal localize scan.ply walk.mp4 --method rm --db db.npz --out traj.txt --frames 200
   cristal localize site/scan.ply site/seq_00 --method rm --db site/reloc.npz --odometry vio.txt --out traj.txt
   cristal localize site/map site/seq_00 --method pnl --map site/map --out traj.txt     Prebuild & Localize (CPU, no torch)
+  cristal localize scan.ply walk.mp4 --method rm --db db.npz --out traj.txt --backfill    offline: also the frames
+                                                                              before the first place it could tell apart
 
 Writes a TUM trajectory (camera-to-world in the scan frame; frames without a pose are absent),
 prints frames localized, relocalizations and FPS per stage, the LOST frames by reason (Render & Match:
@@ -76,6 +78,11 @@ def register(sub) -> None:
                    help="(--method rm) the same for the camera centre, in centimetres (default 1)")
     add_odometry_args(p, "each frame's motion since the previous one predicts it, and carries the pose through LOST "
                          "frames (up to 5 s) so tracking resumes without relocalizing")
+    p.add_argument("--backfill", action="store_true",
+                   help="offline: after the pass in time order, track backwards from the first pose after each LOST "
+                        "stretch (frames recorded before the camera saw a place it could tell apart, e.g. an aisle of "
+                        "identical racks). Same gates; a stretch is kept only if its track back lands on the pose "
+                        "before it. The summary's 'backfilled' counts them; FPS then covers both passes")
     p.add_argument("--no-camera-check", action="store_true",
                    help="(--method rm) skip the check, after localizing, that the frames agree with their camera.json "
                         "(a fit of the intrinsics on up to 12 localized frames; a few seconds)")

@@ -15,29 +15,43 @@ def _seconds(stamp: str) -> float | None:
         return None
 
 
-def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamped: bool = False, odometry=None):
+def _png(image) -> bytes:
+    import cv2
+
+    return cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])[1].tobytes()
+
+
+def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamped: bool = False, odometry=None,
+                      backfill=None):
     """Run a localizer over the first ``n`` frames (``stamped``: pass each frame's capture time, which
     Render & Match uses for constant velocity and motion blur; ``odometry``: the device's own trajectory
     (services.io.trajectory.Trajectory, any world frame), passed as each frame's ``motion`` since the previous
-    frame where both have one). Returns (trajectory, status counts, mean ms per stage, seconds, LOST frames
-    per reason)."""
+    frame where both have one; ``backfill``: a services.localize.backfill.BackfillStats to run the offline backward
+    pass and count into). Returns (trajectory, status counts of the forward pass, mean ms per stage of the forward
+    pass, seconds of both passes, LOST frames per reason in the forward pass)."""
+    import cv2
+    import numpy as np
+
     from protocol.messages import reason_kind
     from services.io.trajectory import Trajectory, relative_motions
     from services.localize.status import Status
-    from services.log import progress
+    from services.log import progress, progress_bar
 
-    traj = Trajectory()
     counts = {s: 0 for s in Status}
     stage: dict[str, float] = {}
     why: dict[str, int] = {}
     motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else None
+    stamps = [_seconds(s) if (stamped or motions is not None) else None for s in seq.stamps[:n]]
+    poses: list = [None] * n
+    kept: dict[int, bytes] = {}  # a video's frames the backward pass needs (LOST ones and those around them), as PNG
+    prev = None
     t0 = time.perf_counter()
     for i, frame in enumerate(progress(seq, desc=progress_desc, total=n, unit="frame")):
         if i >= n:
             break
         kw = {} if motions is None else {"motion": motions[i]}
         if stamped or motions is not None:  # the capture time: constant velocity and blur (R&M), the odometry's clock
-            kw["stamp"] = _seconds(frame.stamp)
+            kw["stamp"] = stamps[i]
         r = loc.process(frame.image, seq.camera, **kw)
         counts[r.status] += 1
         reason = getattr(r, "reason", None) if r.status == Status.LOST else None
@@ -45,8 +59,27 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
             why[reason_kind(reason)] = why.get(reason_kind(reason), 0) + 1
         for k, v in r.timings.items():
             stage[k] = stage.get(k, 0.0) + v / n
-        if r.T_wc is not None:
-            traj.append(frame.stamp, r.T_wc)
+        poses[i] = r.T_wc
+        if backfill is not None and seq.files is None:  # a video: no going back to its frames
+            if i > 0 and (poses[i] is None) != (poses[i - 1] is None) and i - 1 not in kept:
+                kept[i - 1] = _png(prev)
+            if poses[i] is None or (i > 0 and poses[i - 1] is None):
+                kept[i] = _png(frame.image)
+            prev = frame.image
+    if backfill is not None:
+        from services.localize.backfill import backfill as backward
+
+        def image(i: int):
+            return seq.read(i).image if seq.files is not None else cv2.imdecode(np.frombuffer(kept[i], np.uint8),
+                                                                                 cv2.IMREAD_COLOR)
+
+        with progress_bar("backward pass", total=sum(p is None for p in poses), unit="frame") as bar:
+            st = backward(loc, image, seq.camera, poses, stamps, motions, progress=bar.update)
+        backfill.filled, backfill.stretches, backfill.rejected = st.filled, st.stretches, st.rejected
+    traj = Trajectory()
+    for stamp, T in zip(seq.stamps[:n], poses):
+        if T is not None:
+            traj.append(stamp, T)
     return traj, counts, stage, time.perf_counter() - t0, why
 
 
@@ -57,21 +90,29 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     from services.io.trajectory import write_tum
     from services.localize.status import Status
 
+    from services.localize.backfill import BackfillStats
+
     n = min(len(seq), args.frames or len(seq))
-    traj, counts, stage, dt, why = localize_sequence(loc, seq, n, stamped=stamped, odometry=odometry)
+    back = BackfillStats() if getattr(args, "backfill", False) else None
+    traj, counts, stage, dt, why = localize_sequence(loc, seq, n, stamped=stamped, odometry=odometry, backfill=back)
     write_tum(args.out, traj, header=f"cristal localize --method {method}: camera-to-world in the scan frame")
-    print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {counts[Status.LOST]} lost), "
+    print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {n - len(traj)} lost), "
           f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
     summary = {"out": args.out, "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
-               "relocalizations": counts[Status.RELOCALIZED], "lost": counts[Status.LOST], "fps": round(n / dt, 2),
+               "relocalizations": counts[Status.RELOCALIZED], "lost": n - len(traj), "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
+    if back is not None:
+        print(f"backward pass: {back.filled} more frames from {back.stretches} LOST stretches"
+              + (f" ({back.rejected} dropped: their track back missed the pose before them)" if back.rejected else ""))
+        summary.update(backfilled=back.filled, backfill_rejected=back.rejected)
     unused = getattr(getattr(loc, "odometry", None), "unused", 0) if odometry is not None else 0
     if unused:
         print(f"the odometry disagreed with the tracked motion and was set aside on {unused} frames: check its axes "
               f"(--odometry-axes) and that its clock is the frames'")
         summary["odometry_unused_frames"] = unused
     if why:
-        print("lost: " + ", ".join(f"{v} {k}" for k, v in sorted(why.items(), key=lambda kv: -kv[1])))
+        head = "lost in the pass in time order: " if back is not None else "lost: "
+        print(head + ", ".join(f"{v} {k}" for k, v in sorted(why.items(), key=lambda kv: -kv[1])))
         summary["lost_reasons"] = why
     if seq.groundtruth is not None and len(traj):
         from services.eval.ape import ape_first_frames
