@@ -218,3 +218,28 @@ def test_backfill_tracks_back_from_a_later_pose_with_the_light_localizer(pnl_sit
     assert st.stretches == 1 and st.filled >= 4 and st.rejected == 0
     err = np.array([gt[i].distance_to(poses[i]) for i in range(5) if poses[i] is not None])
     assert err[:, 0].max() < 0.03 and err[:, 1].max() < 0.5, err
+
+
+def test_a_prediction_too_far_off_for_the_windows_is_found_by_searching_the_patches(pnl_site, pnl_map):
+    """Direct tracking's windows converge from a few pixels; a turn that changed speed or direction puts the frame
+    further off. Then 60 landmarks' templates are searched for around their predicted projections and PnP on those
+    found gives the pose to align from: no ORB needed, and the pose lands on the truth. Without the search the
+    frame goes the keypoint way."""
+    from services.geometry.se3 import Pose
+    from services.io.sequence import open_sequence
+    from services.localize.pnl import PnlConfig, PnlLocalizer, Status
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    f = seq.read(4)
+    gt = seq.groundtruth_pose(f.stamp)
+    off = gt @ Pose.from_rotvec_t(np.radians([0.8, -2.2, 0.3]), [0.02, 0.0, -0.02])  # ~15 px away in the frame
+    for search in (60, 0):
+        loc = PnlLocalizer.load(pnl_map[0], PnlConfig(search_landmarks=search))
+        r = loc.process(f.image, cam, prior=off)
+        if search:
+            assert r.status == Status.TRACKING and "search_ms" in r.timings and "features_ms" not in r.timings, r
+            dt, dr = gt.distance_to(r.T_wc)
+            assert dt < 0.01 and dr < 0.1, (dt, dr)
+        else:
+            assert "search_ms" not in r.timings and "features_ms" in r.timings  # the keypoint way

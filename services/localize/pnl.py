@@ -31,10 +31,12 @@ its edge); alignment and pose solve alternate until the pose stops moving (one t
 at least as uncertain as its last step). The reported pose and its uncertainty (the gate: 1 cm / 0.1 deg,
 as Render & Match) come from this solution.
 
-- Direct tracking (the default while tracking): the frame is aligned to ~120 visible landmarks with
+- Direct tracking (the default while tracking): the frame is aligned to 240 visible landmarks with
   corner-like patches, spread over the image, straight from the prediction; no ORB is extracted at all.
-  The windows converge from ~4 px, so this holds while the motion model predicts well; when its pose
-  is not good, the frame goes the keypoint way. When the velocity predicts 6 px of blur or more (over an
+  The windows converge from ~4 px, so this holds while the motion model predicts well. When it does not
+  (a turn that changed speed or direction), 60 landmarks' templates are searched for within 32 px by
+  normalised cross-correlation, PnP-RANSAC on those found gives a pose to align from, and the motion to it
+  predicts the blur. When that pose is not good either, the frame goes the keypoint way. When the velocity predicts 6 px of blur or more (over an
   assumed 0.3 of the frame interval: P&L gets no timestamps), the templates are smeared with the same
   motion (the mean of the patch seen from 5 poses across the exposure).
 - After keypoint tracking, the keypoint inliers and up to 60 landmarks no keypoint matched are aligned,
@@ -71,7 +73,7 @@ from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only,
                                      undistorted_gray)
-from services.prebuild.patches import PATCH_FILE, LandmarkPatches, corner_scores, map_fingerprint
+from services.prebuild.patches import PATCH_FILE, LandmarkPatches, corner_scores, map_fingerprint, search_patches
 from services.prebuild.stella_map import StellaMap, read_map
 from services.relocalize.ambiguity import rival
 
@@ -126,6 +128,11 @@ class PnlConfig:
     direct_landmarks: int = 240  # tracking first aligns this many visible landmarks from the prediction, no ORB; 0: off
     #                              (240, not 120: office seeds 1-3 gained 1-4 frames each and 0.02-0.12 cm, at 9.0
     #                              instead of 6.6 ms a tracked frame on one core)
+    search_landmarks: int = 60  # when the direct step fails from the prediction: this many landmarks' templates are
+    search_radius_px: float = 32.0  # ... searched this far (px at 640 wide) and a pose solved from those found, when
+    search_min_found: int = 12  # ... at least this many are found and agree (services.prebuild.patches.search_patches);
+    #                             the direct step then starts from it. 0 landmarks: off. Office walks seeds 2/3/5:
+    #                             195 -> 198, 223 -> 228, 241 -> 257 frames; a 90-degree lens 245 -> 261; none worse
     align_passes: int = 3  # alignment and pose solve alternate until the pose moves less than half its sigma, at most this often
     align_sigma_px: float = 0.5  # a corner patch's alignment noise (1 sigma, px; measured 0.2-0.3 px at the true pose)
     align_rmse_floor: float = 1.0  # the aligned solution's covariance assumes at least align_sigma_px of noise (whitened RMSE floor)
@@ -615,6 +622,27 @@ class PnlLocalizer:
             r = (*r[:4], r[4] * b ** 0.5, r[5] * b ** 0.5, r[6])
         return r
 
+    def _recentred(self, fr: _Frame, pred: Pose, tm: dict) -> Pose | None:
+        """A pose to align from when the prediction is too far off for the windows (a turn that changed speed or
+        direction since the last frame): landmarks' templates searched around their predicted projections
+        (:func:`search_patches`), and PnP-RANSAC on what was found. None when too few are found or agree."""
+        t0 = time.perf_counter()
+        T_cw = pred.inverse()
+        R, t = T_cw.R.copy(), T_cw.t.copy()
+        sel = self._corners(fr, R, t, self._visible(fr, R, t, self._local(pred))[0], self.cfg.search_landmarks)
+        uv, found = search_patches(self.patches, self._patch_of_row[sel], self.idx.pos[sel], R, t, fr.K, self._gray(fr),
+                                   radius=int(round(self.cfg.search_radius_px * fr.width / 640)),
+                                   blur=self._blur_deltas(fr, self._blur_px(fr)))
+        out = None
+        if found.sum() >= self.cfg.search_min_found:
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(self.idx.pos[sel[found]], uv[found], fr.K, None,
+                                                     iterationsCount=200, reprojectionError=2.0,
+                                                     flags=cv2.SOLVEPNP_SQPNP)
+            if ok and inl is not None and len(inl) >= self.cfg.search_min_found:
+                out = Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)).inverse()
+        tm["search_ms"] = 1e3 * (time.perf_counter() - t0)
+        return out
+
     def _blur_px(self, fr: _Frame) -> float:
         """The frame's predicted motion blur (frame pixels) from the velocity over the assumed exposure."""
         if self._vel is None or self.cfg.exposure_fraction <= 0:
@@ -752,6 +780,12 @@ class PnlLocalizer:
         if pred is not None:
             if self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0:
                 r = self._direct_retry(fr, pred, tm)  # no ORB at all when the prediction is inside the windows' reach
+                if r is None and self.cfg.search_landmarks > 0:  # too far off for the windows (a turn that changed)
+                    found = self._recentred(fr, pred, tm)
+                    if found is not None:
+                        if self.T_last is not None:  # the motion as found: the frame's blur (the last one's was less;
+                            self._vel = self.T_last.inverse() @ found  # with it, office seed 3 frames 213-214 were
+                        r = self._direct_retry(fr, found, tm)  # aligned 1.7-3.1 cm off at a predicted 0.4-0.5 cm)
             if r is None:
                 r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
             if prior is None and not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider

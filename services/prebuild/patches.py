@@ -27,7 +27,7 @@ import numpy as np
 from services.io.atomic import atomic_write
 
 __all__ = ["PATCH_FILE", "PATCH_FORMAT_VERSION", "LandmarkPatches", "map_fingerprint", "sample_patches", "align_to_patches",
-           "corner_scores"]
+           "corner_scores", "search_patches"]
 
 PATCH_FILE = "patches.npz"
 PATCH_FORMAT_VERSION = 1
@@ -235,3 +235,40 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
     tr = np.maximum(a + c, 1e-9)
     info = (2.0 / tr)[:, None, None] * np.stack([np.stack([a, bb], 1), np.stack([bb, c], 1)], 1)
     return u0 + d, ok, info
+
+
+
+def search_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
+                   K: np.ndarray, gray: np.ndarray, radius: int = 24, half: int = 6, min_ncc: float = 0.8,
+                   blur: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where the landmarks ``P_w`` with patches ``idx`` appear in the live frame (``gray``, undistorted float32), searched
+    by normalised cross-correlation within ``radius`` px of their projections by the camera (``R_cw``, ``t_cw``, pinhole
+    ``K``), each template built as :func:`align_to_patches` builds it. Returns the best pixels (M, 2) and a mask of
+    those that peak at ``min_ncc`` or more. For a camera pose too far off for the alignment's windows to converge (a
+    few px): a turn that changed speed or direction between two frames. ``blur``: the camera's motion during the
+    exposure as camera-frame deltas (R_d, t_d) around the pose (as services.localize.direct.align_and_solve takes it):
+    the templates are smeared alike."""
+    M = len(idx)
+    uv, found = np.zeros((M, 2)), np.zeros(M, bool)
+    if M == 0:
+        return uv, found
+    k = 2 * half + 1
+    Xc = P_w @ R_cw.T + t_cw
+    z = np.maximum(Xc[:, 2], 1e-6)
+    u0 = np.column_stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]])
+    tmpl = _template(lp, idx, P_w, R_cw, t_cw, K, u0, half)
+    if blur:
+        tmpl = (tmpl + sum(_template(lp, idx, P_w, Rd @ R_cw, Rd @ t_cw + td, K, u0, half) for Rd, td in blur)) / (1 + len(blur))
+    tmpl = tmpl.reshape(M, k, k)
+    h, w = gray.shape
+    for i in range(M):
+        x0, y0 = int(round(u0[i, 0])) - half - radius, int(round(u0[i, 1])) - half - radius
+        x1, y1 = max(x0, 0), max(y0, 0)  # the search window, clipped to the image
+        x2, y2 = min(x0 + k + 2 * radius, w), min(y0 + k + 2 * radius, h)
+        if x2 - x1 < k or y2 - y1 < k or tmpl[i].std() < 1e-3:
+            continue
+        res = cv2.matchTemplate(gray[y1:y2, x1:x2], tmpl[i], cv2.TM_CCOEFF_NORMED)
+        _, best, _, (bx, by) = cv2.minMaxLoc(res)
+        uv[i] = (x1 + bx + half, y1 + by + half)
+        found[i] = best >= min_ncc
+    return uv, found
