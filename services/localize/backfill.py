@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
+
 from services.geometry.se3 import Pose
 
 __all__ = ["BackfillStats", "backfill"]

@@ -36,9 +36,9 @@ as Render & Match) come from this solution.
   The windows converge from ~4 px, so this holds while the motion model predicts well. When it does not
   (a turn that changed speed or direction), 60 landmarks' templates are searched for within 32 px by
   normalised cross-correlation, PnP-RANSAC on those found gives a pose to align from, and the motion to it
-  predicts the blur. When that pose is not good either, the frame goes the keypoint way. When the velocity predicts 6 px of blur or more (over an
-  assumed 0.3 of the frame interval: P&L gets no timestamps), the templates are smeared with the same
-  motion (the mean of the patch seen from 5 poses across the exposure).
+  predicts the blur. When that pose is not good either, the frame goes the keypoint way. When the velocity
+  predicts 6 px of blur or more (over an assumed 0.3 of the frame interval: P&L gets no timestamps), the
+  templates are smeared with the same motion (the mean of the patch seen from 5 poses across the exposure).
 - After keypoint tracking, the keypoint inliers and up to 60 landmarks no keypoint matched are aligned,
   from keypoint solutions within 3x the gates (from further, the windows settle on self-consistent wrong
   poses).
@@ -630,9 +630,10 @@ class PnlLocalizer:
         T_cw = pred.inverse()
         R, t = T_cw.R.copy(), T_cw.t.copy()
         sel = self._corners(fr, R, t, self._visible(fr, R, t, self._local(pred))[0], self.cfg.search_landmarks)
+        deltas = self._blur_deltas(fr, self._blur_px(fr))
         uv, found = search_patches(self.patches, self._patch_of_row[sel], self.idx.pos[sel], R, t, fr.K, self._gray(fr),
                                    radius=int(round(self.cfg.search_radius_px * fr.width / 640)),
-                                   blur=self._blur_deltas(fr, self._blur_px(fr)))
+                                   blur=[(Rd @ R, Rd @ t + td) for Rd, td in deltas] if deltas else None)
         out = None
         if found.sum() >= self.cfg.search_min_found:
             ok, rvec, tvec, inl = cv2.solvePnPRansac(self.idx.pos[sel[found]], uv[found], fr.K, None,
@@ -783,9 +784,11 @@ class PnlLocalizer:
                 if r is None and self.cfg.search_landmarks > 0:  # too far off for the windows (a turn that changed)
                     found = self._recentred(fr, pred, tm)
                     if found is not None:
-                        if self.T_last is not None:  # the motion as found: the frame's blur (the last one's was less;
-                            self._vel = self.T_last.inverse() @ found  # with it, office seed 3 frames 213-214 were
-                        r = self._direct_retry(fr, found, tm)  # aligned 1.7-3.1 cm off at a predicted 0.4-0.5 cm)
+                        # the motion to the pose found predicts the frame's blur (with the last frame's, office seed
+                        # 3 frames 213-214 were aligned 1.7-3.1 cm off at a predicted 0.4-0.5 cm)
+                        if self.T_last is not None:
+                            self._vel = self.T_last.inverse() @ found
+                        r = self._direct_retry(fr, found, tm)
             if r is None:
                 r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
             if prior is None and not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider

@@ -88,9 +88,8 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     ``after(traj) -> dict``: a check run on the trajectory once timed (its fields join the summary)."""
     from services.cli import emit_summary
     from services.io.trajectory import write_tum
-    from services.localize.status import Status
-
     from services.localize.backfill import BackfillStats
+    from services.localize.status import Status
 
     n = min(len(seq), args.frames or len(seq))
     back = BackfillStats() if getattr(args, "backfill", False) else None

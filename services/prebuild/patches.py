@@ -162,6 +162,16 @@ def _normalise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a / s, s[:, 0]
 
 
+def _smeared_template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
+                      K: np.ndarray, u0: np.ndarray, half: int, blur: list | None) -> np.ndarray:
+    """:func:`_template`, or with ``blur`` (more world-to-camera poses passed through during the exposure) the mean of
+    the views from each pose in the same window: a moving frame's smear."""
+    tmpl = _template(lp, idx, P_w, R_cw, t_cw, K, u0, half)
+    if blur:
+        tmpl = (tmpl + sum(_template(lp, idx, P_w, R_i, t_i, K, u0, half) for R_i, t_i in blur)) / (1 + len(blur))
+    return tmpl
+
+
 def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
                      K: np.ndarray, gray: np.ndarray, half: int = 6, iterations: int = 8, max_px: float = 6.0,
                      min_zncc: float = 0.75, blur: list | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -193,10 +203,7 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
     Xc = P_w @ R_cw.T + t_cw
     z = np.maximum(Xc[:, 2], 1e-6)
     u0 = np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy])
-    tmpl = _template(lp, idx, P_w, R_cw, t_cw, K, u0, half)
-    if blur:  # the frame moved during the exposure: the mean of the views from each pose, in the same window
-        tmpl = (tmpl + sum(_template(lp, idx, P_w, R_cw_i, t_cw_i, K, u0, half) for R_cw_i, t_cw_i in blur)) / (1 + len(blur))
-    T, _ = _normalise(tmpl)
+    T, _ = _normalise(_smeared_template(lp, idx, P_w, R_cw, t_cw, K, u0, half, blur))
     d = np.zeros((M, 2), np.float32)
     ok = np.ones(M, bool)
     # the live window is sampled one pixel wider on every side: central differences give the gradients
@@ -237,7 +244,6 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
     return u0 + d, ok, info
 
 
-
 def search_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
                    K: np.ndarray, gray: np.ndarray, radius: int = 24, half: int = 6, min_ncc: float = 0.8,
                    blur: list | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -245,9 +251,7 @@ def search_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: 
     by normalised cross-correlation within ``radius`` px of their projections by the camera (``R_cw``, ``t_cw``, pinhole
     ``K``), each template built as :func:`align_to_patches` builds it. Returns the best pixels (M, 2) and a mask of
     those that peak at ``min_ncc`` or more. For a camera pose too far off for the alignment's windows to converge (a
-    few px): a turn that changed speed or direction between two frames. ``blur``: the camera's motion during the
-    exposure as camera-frame deltas (R_d, t_d) around the pose (as services.localize.direct.align_and_solve takes it):
-    the templates are smeared alike."""
+    few px): a turn that changed speed or direction between two frames. ``blur``: as for :func:`align_to_patches`."""
     M = len(idx)
     uv, found = np.zeros((M, 2)), np.zeros(M, bool)
     if M == 0:
@@ -256,10 +260,7 @@ def search_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: 
     Xc = P_w @ R_cw.T + t_cw
     z = np.maximum(Xc[:, 2], 1e-6)
     u0 = np.column_stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]])
-    tmpl = _template(lp, idx, P_w, R_cw, t_cw, K, u0, half)
-    if blur:
-        tmpl = (tmpl + sum(_template(lp, idx, P_w, Rd @ R_cw, Rd @ t_cw + td, K, u0, half) for Rd, td in blur)) / (1 + len(blur))
-    tmpl = tmpl.reshape(M, k, k)
+    tmpl = _smeared_template(lp, idx, P_w, R_cw, t_cw, K, u0, half, blur).reshape(M, k, k)
     h, w = gray.shape
     for i in range(M):
         x0, y0 = int(round(u0[i, 0])) - half - radius, int(round(u0[i, 1])) - half - radius
