@@ -238,6 +238,21 @@ class _MapIndex:
         self._reloc_rows = np.flatnonzero(self.valid)
 
 
+def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, px: float, iterations: int) -> tuple[Pose | None, int]:
+    """Camera-to-world pose from world points ``obj`` seen at undistorted pixels ``img`` (SQPnP in RANSAC, ``px``
+    threshold) and its inlier count; (None, 0) when there is none, or when the solver refuses a degenerate sample
+    (OpenCV's SQPnP asserts on some)."""
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj.astype(np.float64), img.astype(np.float64), K, None,
+                                                 iterationsCount=iterations, reprojectionError=px, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_SQPNP)
+        if not ok or inl is None:
+            return None, 0
+        return Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)).inverse(), len(inl)
+    except (cv2.error, ValueError):
+        return None, 0
+
+
 @dataclass
 class _Frame:
     K: np.ndarray
@@ -636,11 +651,8 @@ class PnlLocalizer:
                                    blur=[(Rd @ R, Rd @ t + td) for Rd, td in deltas] if deltas else None)
         out = None
         if found.sum() >= self.cfg.search_min_found:
-            ok, rvec, tvec, inl = cv2.solvePnPRansac(self.idx.pos[sel[found]], uv[found], fr.K, None,
-                                                     iterationsCount=200, reprojectionError=2.0,
-                                                     flags=cv2.SOLVEPNP_SQPNP)
-            if ok and inl is not None and len(inl) >= self.cfg.search_min_found:
-                out = Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)).inverse()
+            T, n = _pnp_ransac(self.idx.pos[sel[found]], uv[found], fr.K, 2.0, 200)
+            out = T if n >= self.cfg.search_min_found else None
         tm["search_ms"] = 1e3 * (time.perf_counter() - t0)
         return out
 
@@ -716,15 +728,9 @@ class PnlLocalizer:
                 continue
             obj = idx.pos[lm[sel]].astype(np.float64)
             img = fr.uv[q[sel]].astype(np.float64)
-            ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, fr.K, None, iterationsCount=300,
-                                                     reprojectionError=cfg.reloc_ransac_px, confidence=0.999,
-                                                     flags=cv2.SOLVEPNP_SQPNP)
-            n = 0 if (not ok or inl is None) else len(inl)
+            T, n = _pnp_ransac(obj, img, fr.K, cfg.reloc_ransac_px, 300)
             if n >= 6:
-                try:
-                    results.append((n, Pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)).inverse()))
-                except ValueError:
-                    pass
+                results.append((n, T))
         tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
         if not results or max(n for n, _ in results) < cfg.reloc_min_inliers:
             return None
