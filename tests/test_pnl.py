@@ -243,3 +243,24 @@ def test_a_prediction_too_far_off_for_the_windows_is_found_by_searching_the_patc
             assert dt < 0.01 and dr < 0.1, (dt, dr)
         else:
             assert "search_ms" not in r.timings and "features_ms" in r.timings  # the keypoint way
+
+
+def test_relocalization_matching_scales_past_opencv_s_knn_limit():
+    """OpenCV's brute-force kNN takes at most 2^18 train rows at once; the survey-density warehouse map has 327,379
+    landmarks and its relocalization raised cv2.error. The nearest two are now taken over chunks and merged: the same
+    answer as one kNN where one kNN works, and an answer past the limit."""
+    import cv2
+
+    from services.localize.pnl import knn2_hamming
+
+    rng = np.random.default_rng(0)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    q = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    train = rng.integers(0, 256, (300_000, 32), dtype=np.uint8)
+    train[123_456] = q[0]  # an exact match beyond the first chunk
+    best, d1, d2 = knn2_hamming(bf, q, train)
+    assert best[0] == 123_456 and d1[0] == 0 and d2[0] > 0
+    small = train[:5000]
+    one = bf.knnMatch(q, small, k=2)
+    b, e1, e2 = knn2_hamming(bf, q, small, chunk=777)
+    assert [m[0].distance for m in one] == list(e1) and [m[1].distance for m in one] == list(e2)

@@ -238,6 +238,30 @@ class _MapIndex:
         self._reloc_rows = np.flatnonzero(self.valid)
 
 
+KNN_CHUNK = 1 << 17  # OpenCV's brute-force kNN takes at most 2^18 train rows at once (a 60 x 40 m site's map has more)
+
+
+def knn2_hamming(matcher, query: np.ndarray, train: np.ndarray, chunk: int = KNN_CHUNK
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each binary descriptor of ``query``, its nearest in ``train`` (index, -1 when none) and the Hamming
+    distances to the nearest and the second nearest (inf when missing), ``train`` taken in chunks of ``chunk`` rows
+    (the survey-density warehouse map has 327,379 landmarks: one kNN over all of them raised cv2.error)."""
+    n = len(query)
+    best = np.full(n, -1, np.int64)
+    d = np.full((n, 2), np.inf)
+    for start in range(0, len(train), chunk):
+        for mm in matcher.knnMatch(query, train[start:start + chunk], k=2):
+            if not mm:
+                continue
+            i = mm[0].queryIdx
+            for m in mm:  # merge this chunk's two nearest into the running two
+                if m.distance < d[i, 0]:
+                    d[i, 1], d[i, 0], best[i] = d[i, 0], m.distance, start + m.trainIdx
+                elif m.distance < d[i, 1]:
+                    d[i, 1] = m.distance
+    return best, d[:, 0], d[:, 1]
+
+
 def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, px: float, iterations: int) -> tuple[Pose | None, int]:
     """Camera-to-world pose from world points ``obj`` seen at undistorted pixels ``img`` (SQPnP in RANSAC, ``px``
     threshold) and its inlier count; (None, 0) when there is none, or when the solver refuses a degenerate sample
@@ -698,17 +722,13 @@ class PnlLocalizer:
             return None
         # the strongest keypoints only: the kNN against every landmark is the cost of a relocalization
         qsel = np.argsort(-fr.feats.responses)[: cfg.reloc_keypoints]
-        knn = idx._bf.knnMatch(fr.feats.desc[qsel], idx.desc[idx._reloc_rows], k=2)
-        q, trn = [], []
-        for mm in knn:
-            if len(mm) == 2 and mm[0].distance <= cfg.reloc_max_hamming and mm[0].distance < cfg.reloc_ratio * mm[1].distance:
-                q.append(int(qsel[mm[0].queryIdx]))
-                trn.append(mm[0].trainIdx)
+        best, d1, d2 = knn2_hamming(idx._bf, fr.feats.desc[qsel], idx.desc[idx._reloc_rows])
+        keep = (best >= 0) & (d1 <= cfg.reloc_max_hamming) & (d1 < cfg.reloc_ratio * d2)
         tm["reloc_match_ms"] = 1e3 * (time.perf_counter() - t0)
-        if len(q) < cfg.reloc_min_inliers:
+        if keep.sum() < cfg.reloc_min_inliers:
             return None
-        q = np.array(q)
-        lm = idx._reloc_rows[np.array(trn)]
+        q = qsel[keep]
+        lm = idx._reloc_rows[best[keep]]
         # votes: keyframes observing the matched landmarks
         obs = np.isin(idx.obs_lm, lm)
         votes = np.bincount(idx.obs_kf[obs], minlength=len(idx.kf_ids))
