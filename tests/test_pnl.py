@@ -201,7 +201,6 @@ def test_tracking_modes_against_ground_truth(pnl_site, pnl_map, mode):
     assert not any(used_orb) if mode.startswith("direct") else all(used_orb)
 
 
-
 def test_backfill_tracks_back_from_a_later_pose_with_the_light_localizer(pnl_site, pnl_map):
     """``--backfill`` drives P&L the same way as Render & Match: frames without a forward pose are tracked back from the
     first pose after them, each within a few centimetres of the ground truth."""

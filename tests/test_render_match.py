@@ -194,7 +194,7 @@ def test_localize_cli_takes_the_device_s_odometry(rm_setup, small_site, tmp_path
     assert main(args + ["--out", str(tmp_path / "t.txt"), "--odometry", str(tmp_path / "odo.txt"), "--backfill"]) == 0
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert s["odometry"] is True and s["localized"] >= 5 and s["ape_none_trans_rmse_m"] < 0.05
-    assert s["backfilled"] >= 0 and s["lost"] == s["frames"] - s["localized"]  # the backward pass ran (with the odometry)
+    assert "backfilled" in s and s["lost"] == s["frames"] - s["localized"]  # the backward pass ran (with the odometry)
     write_tum(tmp_path / "other.txt", Trajectory(["1.0", "2.0"], odo.poses[:2]))  # no frame in its time span: a clear error
     assert main(args + ["--out", str(tmp_path / "x.txt"), "--odometry", str(tmp_path / "other.txt")]) == 2
     assert "cover none of the sequence's frames" in capsys.readouterr().err

@@ -27,15 +27,17 @@ class BackfillStats:
 
 def backfill(loc, frame: Callable[[int], np.ndarray], camera, poses: list[Pose | None], stamps: list[float | None],
              motions: list[Pose | None] | None = None, give_up_s: float = 1.0, meet_m: float = 0.03,
-             meet_deg: float = 0.3, progress: Callable[[int], None] | None = None) -> BackfillStats:
+             meet_deg: float = 0.3, progress: Callable[[int], None] | None = None,
+             stats: BackfillStats | None = None) -> BackfillStats:
     """Fill ``poses`` (one per frame, None where the forward pass reported none) in place.
 
     ``loc``: a localizer with ``reset()`` and ``process(image, camera, prior=, stamp=, motion=)`` (Render & Match or
     P&L); ``frame(i)``: frame i's image; ``stamps``: capture times in seconds (None: unknown; frames are then taken
     1/30 s apart), fed negated so that time runs forward for the localizer; ``motions``: the device's odometry,
     ``T_{i-1}^-1 @ T_i`` per frame, inverted for the backward step. A backward track stops at a frame with a forward
-    pose or after ``give_up_s`` of LOST frames. ``progress(k)``: called with the number of frames processed."""
-    st = BackfillStats()
+    pose or after ``give_up_s`` of LOST frames. ``progress(k)``: called with the number of frames processed.
+    ``stats``: counted into (returned either way)."""
+    st = stats if stats is not None else BackfillStats()
     n = len(poses)
     times = [s if s is not None else i / 30.0 for i, s in enumerate(stamps)]
     b = n - 1

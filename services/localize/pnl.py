@@ -644,15 +644,19 @@ class PnlLocalizer:
         o = o[np.argsort(rank, kind="stable")]
         return rows[o[:n]]
 
+    def _corners_seen(self, fr: _Frame, T_wc: Pose, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The world-to-camera (R, t) of ``T_wc`` and up to ``n`` of the local landmarks it sees to align
+        (:meth:`_corners`)."""
+        T_cw = T_wc.inverse()
+        R, t = T_cw.R.copy(), T_cw.t.copy()
+        visible, _, _, _ = self._visible(fr, R, t, self._local(T_wc))
+        return R, t, self._corners(fr, R, t, visible, n)
+
     def _direct(self, fr: _Frame, T_wc_pred: Pose, tm: dict, n: int | None = None):
         """Track without keypoints: align the frame to the patches of up to ``n`` (default ``direct_landmarks``)
         visible landmarks from the predicted pose and solve. Returns the aligned solution (as ``_aligned``) or None."""
         t0 = time.perf_counter()
-        rows = self._local(T_wc_pred)
-        T_cw = T_wc_pred.inverse()
-        R, t = T_cw.R.copy(), T_cw.t.copy()
-        visible, _, _, _ = self._visible(fr, R, t, rows)
-        sel = self._corners(fr, R, t, visible, n or self.cfg.direct_landmarks)
+        R, t, sel = self._corners_seen(fr, T_wc_pred, n or self.cfg.direct_landmarks)
         blur = self._blur_px(fr)
         r = self._aligned(fr, R, t, sel, max_moved_px=None, blur=self._blur_deltas(fr, blur))
         tm["direct_ms"] = tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
@@ -666,9 +670,7 @@ class PnlLocalizer:
         direction since the last frame): landmarks' templates searched around their predicted projections
         (:func:`search_patches`), and PnP-RANSAC on what was found. None when too few are found or agree."""
         t0 = time.perf_counter()
-        T_cw = pred.inverse()
-        R, t = T_cw.R.copy(), T_cw.t.copy()
-        sel = self._corners(fr, R, t, self._visible(fr, R, t, self._local(pred))[0], self.cfg.search_landmarks)
+        R, t, sel = self._corners_seen(fr, pred, self.cfg.search_landmarks)
         deltas = self._blur_deltas(fr, self._blur_px(fr))
         uv, found = search_patches(self.patches, self._patch_of_row[sel], self.idx.pos[sel], R, t, fr.K, self._gray(fr),
                                    radius=int(round(self.cfg.search_radius_px * fr.width / 640)),

@@ -41,6 +41,7 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     stage: dict[str, float] = {}
     why: dict[str, int] = {}
     motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else None
+    # the capture time: constant velocity and blur (R&M), the odometry's clock
     stamps = [_seconds(s) if (stamped or motions is not None) else None for s in seq.stamps[:n]]
     poses: list = [None] * n
     kept: dict[int, bytes] = {}  # a video's frames the backward pass needs (LOST ones and those around them), as PNG
@@ -49,10 +50,7 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     for i, frame in enumerate(progress(seq, desc=progress_desc, total=n, unit="frame")):
         if i >= n:
             break
-        kw = {} if motions is None else {"motion": motions[i]}
-        if stamped or motions is not None:  # the capture time: constant velocity and blur (R&M), the odometry's clock
-            kw["stamp"] = stamps[i]
-        r = loc.process(frame.image, seq.camera, **kw)
+        r = loc.process(frame.image, seq.camera, stamp=stamps[i], motion=None if motions is None else motions[i])
         counts[r.status] += 1
         reason = getattr(r, "reason", None) if r.status == Status.LOST else None
         if reason:
@@ -74,8 +72,7 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
                                                                                  cv2.IMREAD_COLOR)
 
         with progress_bar("backward pass", total=sum(p is None for p in poses), unit="frame") as bar:
-            st = backward(loc, image, seq.camera, poses, stamps, motions, progress=bar.update)
-        backfill.filled, backfill.stretches, backfill.rejected = st.filled, st.stretches, st.rejected
+            backward(loc, image, seq.camera, poses, stamps, motions, progress=bar.update, stats=backfill)
     traj = Trajectory()
     for stamp, T in zip(seq.stamps[:n], poses):
         if T is not None:
