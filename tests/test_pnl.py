@@ -244,6 +244,30 @@ def test_a_prediction_too_far_off_for_the_windows_is_found_by_searching_the_patc
             assert "search_ms" not in r.timings and "features_ms" in r.timings  # the keypoint way
 
 
+def test_a_relocalization_the_keypoints_cannot_hold_is_aligned_from_the_landmark_patches(pnl_site, pnl_map):
+    """A cold frame's coarse pose (PnP on a few dozen descriptor matches) is refined by tracking its keypoints from
+    it; where they do not hold it (few ORB matches: warehouse aisles, a 90-degree lens), the landmarks' patches
+    are searched around the coarse pose and aligned, as for a tracking prediction that is off. Here the keypoint step
+    matches nothing (a window match must have Hamming distance 0): the frame still relocalizes within 1 cm, and
+    without the patch step it is LOST."""
+    from services.io.sequence import open_sequence
+    from services.localize.pnl import PnlConfig, PnlLocalizer, Status
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    f = seq.read(2)
+    gt = seq.groundtruth_pose(f.stamp)
+    for search in (60, 0):
+        loc = PnlLocalizer.load(pnl_map[0], PnlConfig(max_hamming=0, search_landmarks=search))
+        r = loc.process(f.image, cam)
+        if search:
+            assert r.status == Status.RELOCALIZED and "search_ms" in r.timings, r
+            dt, dr = gt.distance_to(r.T_wc)
+            assert dt < 0.01 and dr < 0.1, (dt, dr)
+        else:
+            assert r.status == Status.LOST and r.T_wc is None, r
+
+
 def test_relocalization_matching_scales_past_opencv_s_knn_limit():
     """OpenCV's brute-force kNN takes at most 2^18 train rows at once; the survey-density warehouse map has 327,379
     landmarks and its relocalization raised cv2.error. The nearest two are now taken over chunks and merged: the same

@@ -49,8 +49,9 @@ gave 1.7 cm / 0.23 deg over 197 frames in ~18 ms.
 With no pose (first frame, after LOST) the frame relocalizes against the map itself: each keypoint's
 descriptor is matched against every landmark's representative descriptor (ratio test), the
 matches vote for the keyframes observing those landmarks, and PnP-RANSAC on the matches around the
-best-voted keyframes gives a coarse pose which the tracking step refines and gates. No external
-vocabulary is needed.
+best-voted keyframes gives a coarse pose which the tracking step refines and gates (when its keypoints do not
+hold the coarse pose, the patch search and direct step above start from it instead). No external vocabulary is
+needed.
 """
 
 from __future__ import annotations
@@ -777,6 +778,14 @@ class PnlLocalizer:
             # the keypoint pose is close but not sure: the direct step from it, as from a tracking prediction (cold
             # frames of the office walk: 6 of 11 failures were plausible keypoint poses of 39-84 inliers)
             rd = self._direct_retry(fr, Pose(r[0].T, -r[0].T @ r[1]), tm)
+            if rd is not None:
+                r = rd
+        if not self._plausible(r) and self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0 \
+                and self.cfg.search_landmarks > 0:
+            # the keypoints did not hold the coarse pose: its landmarks' patches searched around it and aligned, as
+            # when a tracking prediction is off (cold frames of the 90-degree-lens walk: 22 -> 29 of 40 relocalized)
+            found = self._recentred(fr, T_wc, tm)
+            rd = self._direct_retry(fr, found if found is not None else T_wc, tm)
             if rd is not None:
                 r = rd
         return r
