@@ -696,7 +696,8 @@ class RenderMatchTracker:
                            tracking: bool = False) -> PnpResult | None:
         """Render at ``T`` and match, up to ``rounds`` times while the pose still moves; keeps the last keyframe.
         ``kf``: an existing render at ``T`` for the first round. ``tracking``: a plausible pose is enough
-        (relocalizations must be good)."""
+        (relocalizations must be good; a plausible one before the last round is rendered at once more: office seed 5's
+        cold frames 134 and 230, coarse poses 12 / 54 cm off, matched 5.7 / 5.3 cm off at 1.0 / 1.9 cm sigma first)."""
         accept = self._plausible if tracking else self._good
         r = None
         for i in range(rounds):
@@ -704,6 +705,9 @@ class RenderMatchTracker:
                 kf = self._keyframe(T, fr)
             r = self._match(kf, fr, T, fresh=True)
             if not accept(r):
+                if i + 1 < rounds and self._plausible(r):  # closer, not yet sure: rendered at once more
+                    T = r.T_wc
+                    continue
                 return None
             kf.ref_inliers = r.n_inliers
             self.kf = kf
