@@ -1,6 +1,7 @@
 """Prebuild & Localize on a simulated site: map build time and size, localization rate, APE and FPS on one core.
 
     python benchmarks/pnl.py [--site runs/bench-sim/office] [--variants full:1.0 full:0.1 splat:1.0] [--spacing 1.0]
+    python benchmarks/pnl.py --site runs/bench-sim/office-s6-wide --map runs/bench-sim/office-s6-wide/map
 
 Each variant is STAGE:FRACTION: the renderer stage the map is built from ("full" = neural, "splat" =
 plain point splats, the paper's ablation) and the fraction of the scan's points kept (random
@@ -12,7 +13,8 @@ fails), keypoints+align (ORB, then patch alignment) and keypoints (ORB only, as 
 "track ms" = median CPU time (``time.thread_time``, so other processes on a shared
 machine do not count) of a frame that tracked; "track FPS" = 1000 / its mean; "FPS all" = all frames
 (relocalizations included) over their total CPU time. "cold reloc": 40 random frames, each given to a fresh
-localizer with no pose; counted when RELOCALIZED within 5 cm / 1 degree of the ground truth.
+localizer with no pose; counted when RELOCALIZED within 5 cm / 1 degree of the ground truth. ``--map DIR``:
+measure a map already built (``cristal prebuild``) instead of building the variants.
 """
 
 from __future__ import annotations
@@ -113,6 +115,7 @@ def main() -> None:
     ap.add_argument("--variants", nargs="+", default=["full:1.0", "full:0.1", "splat:1.0"])
     ap.add_argument("--spacing", type=float, default=1.0)
     ap.add_argument("--rebuild", action="store_true")
+    ap.add_argument("--map", type=Path, help="an existing map folder to measure (the variants are not built)")
     args = ap.parse_args()
     site = Path(args.site)
     if not (site / "site.json").exists():
@@ -120,15 +123,23 @@ def main() -> None:
     print("| site | map from | points | keyframes | landmarks | map MB (+ patches) | build s | tracking | localized | 1st frame "
           "| APE RMSE cm / deg (none) | APE median cm / deg | track CPU ms (median) | track FPS | FPS all | cold reloc |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for v in args.variants:
-        stage, frac = v.split(":")
-        out, b = build(site, stage, float(frac), args.spacing, args.rebuild)
+    for v in ([None] if args.map else args.variants):
+        if v is None:  # a given map: its own counts, no build
+            from services.prebuild.stella_map import MAP_FILE, read_map
+
+            out, m = args.map, read_map(args.map)
+            stage, where, built = args.map.name, "given", "-"
+            b = {"keyframes": m.n_keyframes, "landmarks": m.n_landmarks, "bytes": (out / MAP_FILE).stat().st_size}
+        else:
+            stage, frac = v.split(":")
+            out, b = build(site, stage, float(frac), args.spacing, args.rebuild)
+            where, built = f"{b['points'] / 1e6:.2f} M ({float(frac):.0%})", f"{b['total_s']:.0f}"
         patches = out / "patches.npz"
         extra = f" (+ {patches.stat().st_size / 1e6:.1f})" if patches.exists() else ""
         for mode in (list(MODES) if patches.exists() else ["keypoints"]):
             r = localize(out, site / "seq_00", mode)
-            print(f"| {site.name} | {stage} | {b['points'] / 1e6:.2f} M ({float(frac):.0%}) | {b['keyframes']} | {b['landmarks']:,} "
-                  f"| {b['bytes'] / 1e6:.1f}{extra} | {b['total_s']:.0f} | {mode} "
+            print(f"| {site.name} | {stage} | {where} | {b['keyframes']} | {b['landmarks']:,} "
+                  f"| {b['bytes'] / 1e6:.1f}{extra} | {built} | {mode} "
                   f"| {r['localized']}/{r['frames']} = {r['localized'] / r['frames']:.1%} | {r['first']} "
                   f"| {r['ape_cm']:.2f} / {r['ape_deg']:.3f} | {r['ape_median_cm']:.2f} / {r['ape_median_deg']:.3f} "
                   f"| {r['track_ms_median']:.1f} | {r['track_fps']:.0f} | {r['fps']:.0f} | {r['cold']} |", flush=True)
