@@ -720,7 +720,7 @@ class PnlLocalizer:
         self._features(fr, tm)
         t0 = time.perf_counter()
         idx, cfg = self.idx, self.cfg
-        fr.reason = "no place in the map fits the frame"
+        fr.reason = f"no place in the map fits the frame: {len(fr.feats)} keypoints on the frame"
         if len(fr.feats) < 10 or len(idx._reloc_rows) < 10:
             return None
         # the strongest keypoints only: the kNN against every landmark is the cost of a relocalization
@@ -729,6 +729,8 @@ class PnlLocalizer:
         keep = (best >= 0) & (d1 <= cfg.reloc_max_hamming) & (d1 < cfg.reloc_ratio * d2)
         tm["reloc_match_ms"] = 1e3 * (time.perf_counter() - t0)
         if keep.sum() < cfg.reloc_min_inliers:
+            fr.reason = (f"no place in the map fits the frame: {int(keep.sum())} descriptor matches pass the ratio test, "
+                         f"a place needs {cfg.reloc_min_inliers}")
             return None
         q = qsel[keep]
         lm = idx._reloc_rows[best[keep]]
@@ -756,6 +758,9 @@ class PnlLocalizer:
                 results.append((n, T))
         tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
         if not results or max(n for n, _ in results) < cfg.reloc_min_inliers:
+            if results:
+                fr.reason = (f"too few inliers in the map: the best place has {max(n for n, _ in results)}, a pose needs "
+                             f"{cfg.reloc_min_inliers}")
             return None
         n_best, T_wc = max(results, key=lambda nr: nr[0])
         # another place about as good, or several look-alikes far away: a repetitive site (services.relocalize.ambiguity)
@@ -788,6 +793,8 @@ class PnlLocalizer:
             rd = self._direct_retry(fr, found if found is not None else T_wc, tm)
             if rd is not None:
                 r = rd
+        if not self._plausible(r):
+            fr.reason = f"no place in the map was confirmed: the best ({n_best} PnP inliers) did not track from its coarse pose"
         return r
 
     # ---- the frame loop ---------------------------------------------------------------------------
