@@ -781,8 +781,16 @@ class PnlLocalizer:
         if self._plausible(r) and not self._good(r, fr) and self.patches is not None and self.cfg.align \
                 and self.cfg.direct_landmarks > 0:
             # the keypoint pose is close but not sure: the direct step from it, as from a tracking prediction (cold
-            # frames of the office walk: 6 of 11 failures were plausible keypoint poses of 39-84 inliers)
-            rd = self._direct_retry(fr, Pose(r[0].T, -r[0].T @ r[1]), tm)
+            # frames of the office walk: 6 of 11 failures were plausible keypoint poses of 39-84 inliers). Only from
+            # within align_sigma_factor x the gates, as in tracking: from further, the windows settle on a
+            # self-consistent wrong pose (office seed 5 frame 112, a brick wall through a doorway: a keypoint pose
+            # 21 cm off at 11.5 cm sigma was aligned to one 19 cm / 1.4 deg off at 0.5 cm sigma, and reported).
+            # From further the patches are searched first, as for a prediction that is off.
+            T_kp = Pose(r[0].T, -r[0].T @ r[1])
+            k = self.cfg.align_sigma_factor
+            near = self._within(r, fr, k * self.cfg.max_sigma_m, k * self.cfg.max_sigma_deg)
+            start = T_kp if near else (self._recentred(fr, T_kp, tm) if self.cfg.search_landmarks > 0 else None)
+            rd = self._direct_retry(fr, start, tm) if start is not None else None
             if rd is not None:
                 r = rd
         if not self._plausible(r) and self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0 \
