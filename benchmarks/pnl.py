@@ -13,7 +13,8 @@ fails), keypoints+align (ORB, then patch alignment) and keypoints (ORB only, as 
 "track ms" = median CPU time (``time.thread_time``, so other processes on a shared
 machine do not count) of a frame that tracked; "track FPS" = 1000 / its mean; "FPS all" = all frames
 (relocalizations included) over their total CPU time. "cold reloc": 40 random frames, each given to a fresh
-localizer with no pose; counted when RELOCALIZED within 5 cm / 1 degree of the ground truth. ``--map DIR``:
+localizer with no pose (``--cold N --cold-seed S``); counted when RELOCALIZED within 5 cm / 1 degree of the ground
+truth, and "k off" when RELOCALIZED further from it (a wrong pose reported). ``--map DIR``:
 measure a map already built (``cristal prebuild``) instead of building the variants.
 """
 
@@ -59,7 +60,7 @@ MODES = {  # tracking modes (see services/localize/pnl.py): the default, then th
 }
 
 
-def localize(map_dir: Path, seq_dir: Path, mode: str = "direct") -> dict:
+def localize(map_dir: Path, seq_dir: Path, mode: str = "direct", cold: int = 40, cold_seed: int = 0) -> dict:
     from services.eval.ape import compute_ape
     from services.io.sequence import open_sequence
     from services.io.trajectory import Trajectory
@@ -88,9 +89,9 @@ def localize(map_dir: Path, seq_dir: Path, mode: str = "direct") -> dict:
     # cold relocalization: random frames, each with a fresh localizer (no pose), RELOCALIZED within 5 cm / 1 deg
     import copy
 
-    rng = np.random.default_rng(0)
-    cold_ok, cold_n = 0, 0
-    for i in rng.choice(len(seq), min(40, len(seq)), replace=False):
+    rng = np.random.default_rng(cold_seed)
+    cold_ok, cold_n, cold_off = 0, 0, 0
+    for i in rng.choice(len(seq), min(cold, len(seq)), replace=False):
         fresh = copy.copy(loc)
         f = seq.read(int(i))
         r = fresh.process(f.image, seq.camera)
@@ -98,6 +99,7 @@ def localize(map_dir: Path, seq_dir: Path, mode: str = "direct") -> dict:
         if r.status == Status.RELOCALIZED:
             dt, dr = seq.groundtruth_pose(f.stamp).distance_to(r.T_wc)
             cold_ok += dt < 0.05 and dr < 1.0
+            cold_off += not (dt < 0.05 and dr < 1.0)
     a = compute_ape(seq.groundtruth, traj, "none") if len(traj) else None
     return {"frames": len(seq), "localized": len(traj), "first": first, "relocalizations": counts[Status.RELOCALIZED],
             "ape_cm": 100 * a.trans_rmse if a else float("nan"), "ape_deg": a.rot_rmse_deg if a else float("nan"),
@@ -106,7 +108,7 @@ def localize(map_dir: Path, seq_dir: Path, mode: str = "direct") -> dict:
             "track_fps": 1000 / np.mean(track_ms) if track_ms else 0.0,
             "track_ms_median": float(np.median(track_ms)) if track_ms else float("nan"),
             "fps": 1000 * len(all_ms) / sum(all_ms), "wall_fps": len(seq) / wall, "load_s": load_s,
-            "cold": f"{cold_ok}/{cold_n}"}
+            "cold": f"{cold_ok}/{cold_n}" + (f", {cold_off} off" if cold_off else "")}
 
 
 def main() -> None:
@@ -116,6 +118,8 @@ def main() -> None:
     ap.add_argument("--spacing", type=float, default=1.0)
     ap.add_argument("--rebuild", action="store_true")
     ap.add_argument("--map", type=Path, help="an existing map folder to measure (the variants are not built)")
+    ap.add_argument("--cold", type=int, default=40, help="random frames tried cold (each with a fresh localizer)")
+    ap.add_argument("--cold-seed", type=int, default=0, help="which random frames")
     args = ap.parse_args()
     site = Path(args.site)
     if not (site / "site.json").exists():
@@ -137,7 +141,7 @@ def main() -> None:
         patches = out / "patches.npz"
         extra = f" (+ {patches.stat().st_size / 1e6:.1f})" if patches.exists() else ""
         for mode in (list(MODES) if patches.exists() else ["keypoints"]):
-            r = localize(out, site / "seq_00", mode)
+            r = localize(out, site / "seq_00", mode, args.cold, args.cold_seed)
             print(f"| {site.name} | {stage} | {where} | {b['keyframes']} | {b['landmarks']:,} "
                   f"| {b['bytes'] / 1e6:.1f}{extra} | {built} | {mode} "
                   f"| {r['localized']}/{r['frames']} = {r['localized'] / r['frames']:.1%} | {r['first']} "
