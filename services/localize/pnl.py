@@ -683,6 +683,12 @@ class PnlLocalizer:
         tm["search_ms"] = 1e3 * (time.perf_counter() - t0)
         return out
 
+    def _aligned_from(self, fr: _Frame, T_wc: Pose, near: bool, tm: dict):
+        """The direct step (:meth:`_direct_retry`) from ``T_wc`` when it is ``near`` enough for the windows, else from
+        where the patches searched around it (:meth:`_recentred`) put the camera; None when neither gives a good pose."""
+        start = T_wc if near else (self._recentred(fr, T_wc, tm) if self.cfg.search_landmarks > 0 else None)
+        return self._direct_retry(fr, start, tm) if start is not None else None
+
     def _blur_px(self, fr: _Frame) -> float:
         """The frame's predicted motion blur (frame pixels) from the velocity over the assumed exposure."""
         if self._vel is None or self.cfg.exposure_fraction <= 0:
@@ -786,19 +792,15 @@ class PnlLocalizer:
             # self-consistent wrong pose (office seed 5 frame 112, a brick wall through a doorway: a keypoint pose
             # 21 cm off at 11.5 cm sigma was aligned to one 19 cm / 1.4 deg off at 0.5 cm sigma, and reported).
             # From further the patches are searched first, as for a prediction that is off.
-            T_kp = Pose(r[0].T, -r[0].T @ r[1])
             k = self.cfg.align_sigma_factor
             near = self._within(r, fr, k * self.cfg.max_sigma_m, k * self.cfg.max_sigma_deg)
-            start = T_kp if near else (self._recentred(fr, T_kp, tm) if self.cfg.search_landmarks > 0 else None)
-            rd = self._direct_retry(fr, start, tm) if start is not None else None
+            rd = self._aligned_from(fr, Pose(r[0].T, -r[0].T @ r[1]), near, tm)
             if rd is not None:
                 r = rd
-        if not self._plausible(r) and self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0 \
-                and self.cfg.search_landmarks > 0:
+        if not self._plausible(r) and self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0:
             # the keypoints did not hold the coarse pose: its landmarks' patches searched around it and aligned, as
             # when a tracking prediction is off (cold frames of the 90-degree-lens walk: 22 -> 29 of 40 relocalized)
-            found = self._recentred(fr, T_wc, tm)
-            rd = self._direct_retry(fr, found if found is not None else T_wc, tm)
+            rd = self._aligned_from(fr, T_wc, False, tm)
             if rd is not None:
                 r = rd
         if not self._plausible(r):
