@@ -246,7 +246,7 @@ def test_a_prediction_too_far_off_for_the_windows_is_found_by_searching_the_patc
 
 def test_a_relocalization_the_keypoints_cannot_hold_is_aligned_from_the_landmark_patches(pnl_site, pnl_map):
     """A cold frame's coarse pose (PnP on a few dozen descriptor matches) is refined by tracking its keypoints from
-    it; where they do not hold it (few ORB matches: warehouse aisles, a 90-degree lens), the landmarks' patches
+    it; where they do not hold it (few ORB matches: a 90-degree lens), the landmarks' patches
     are searched around the coarse pose and aligned, as for a tracking prediction that is off. Here the keypoint step
     matches nothing (a window match must have Hamming distance 0): the frame still relocalizes within 1 cm, and
     without the patch step it is LOST."""

@@ -799,7 +799,7 @@ class PnlLocalizer:
                 r = rd
         if not self._plausible(r) and self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0:
             # the keypoints did not hold the coarse pose: its landmarks' patches searched around it and aligned, as
-            # when a tracking prediction is off (cold frames of the 90-degree-lens walk: 22 -> 29 of 40 relocalized)
+            # when a tracking prediction is off (cold frames of the 90-degree-lens walk: 22 -> 27 of 40 relocalized)
             rd = self._aligned_from(fr, T_wc, False, tm)
             if rd is not None:
                 r = rd
