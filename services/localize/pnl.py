@@ -764,9 +764,10 @@ class PnlLocalizer:
                 results.append((n, T))
         tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
         if not results or max(n for n, _ in results) < cfg.reloc_min_inliers:
-            if results:
-                fr.reason = (f"too few inliers in the map: the best place has {max(n for n, _ in results)}, a pose needs "
-                             f"{cfg.reloc_min_inliers}")
+            fr.reason = (f"too few inliers in the map: the best place has {max(n for n, _ in results)}, a pose needs "
+                         f"{cfg.reloc_min_inliers}" if results else
+                         f"no place in the map fits the frame: {int(keep.sum())} descriptor matches, but no group of "
+                         f"keyframes holds {cfg.reloc_min_inliers} of them")
             return None
         n_best, T_wc = max(results, key=lambda nr: nr[0])
         # another place about as good, or several look-alikes far away: a repetitive site (services.relocalize.ambiguity)
