@@ -587,29 +587,41 @@ class RenderMatchTracker:
         # barely change with it (a frame blurred 17 px: 0.810 sharp, 0.819 at its blur; band-passed 0.67 -> 0.90)
         sigma = 3.0 * w / 320
         m = max(4, w // 16)
-        live = (live - cv2.GaussianBlur(live, (0, 0), sigma))[m:-m, m:-m]
-        live = (live - live.mean()) / (live.std() + 1e-6)
-        scores: dict[tuple[float, float], float] = {}  # (length in probe pixels, direction) -> correlation
-        for length in self.cfg.blur_probe_px:
-            k = 2 * int(round(length * w / 640 / 2)) + 1  # odd: the line's middle on the kernel's anchor (no shift)
-            length = length * w / 640 if k > 1 else 0.0
-            for ang in ([0.0] if k == 1 else [0.0, 45.0, 90.0, 135.0]):
-                ker = np.zeros((k, k), np.float32)
-                c = k // 2
-                for j in range(-c, c + 1):  # a line through the centre at this angle
-                    ker[c + int(round(j * np.sin(np.radians(ang)))), c + int(round(j * np.cos(np.radians(ang))))] = 1.0
-                b = cv2.filter2D(ref, -1, ker / ker.sum(), borderType=cv2.BORDER_REFLECT)
-                b = (b - cv2.GaussianBlur(b, (0, 0), sigma))[m:-m, m:-m]
-                scores[(length, ang)] = float(((b - b.mean()) / (b.std() + 1e-6) * live).mean())
-        fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+
+        def band(x: np.ndarray) -> np.ndarray:
+            x = (x - cv2.GaussianBlur(x, (0, 0), sigma))[m:-m, m:-m]
+            return (x - x.mean()) / (x.std() + 1e-6)
+
+        def smeared(src: np.ndarray, fixed: np.ndarray) -> dict[tuple[float, float], float]:
+            """(length in probe pixels, direction) -> correlation of ``src`` smeared so with ``fixed`` (band-passed)."""
+            out = {}
+            for length in self.cfg.blur_probe_px:
+                k = 2 * int(round(length * w / 640 / 2)) + 1  # odd: the line's middle on the kernel's anchor (no shift)
+                length = length * w / 640 if k > 1 else 0.0
+                for ang in ([0.0] if k == 1 else [0.0, 45.0, 90.0, 135.0]):
+                    ker = np.zeros((k, k), np.float32)
+                    c = k // 2
+                    for j in range(-c, c + 1):  # a line through the centre at this angle
+                        ker[c + int(round(j * np.sin(np.radians(ang)))), c + int(round(j * np.cos(np.radians(ang))))] = 1.0
+                    out[(length, ang)] = float((band(cv2.filter2D(src, -1, ker / ker.sum(), borderType=cv2.BORDER_REFLECT)) * fixed).mean())
+            return out
+
+        scores = smeared(ref, band(live))  # the render smeared: a blurred frame fits it better
         sharp = scores.get((0.0, 0.0), -1.0)
         (length, ang), best = max(scores.items(), key=lambda kv: kv[1])
+        # Smoothing of any kind helps where the render is softer or noisier than the frame (a sparse scan seen close
+        # up: leaks, U-Net fill). Then smearing the *frame* helps as much: a blur counts only for what the render's
+        # smearing gains beyond that (office seed 2's rack close-up, 7-8 px of blur, read as 32-48 px without it, so
+        # every relocalization there was too uncertain to report). And it has to explain a real share of what the
+        # sharp render leaves unexplained, and be a blur: smearing along its direction must fit clearly better than across it.
+        gain = along = best - sharp
+        if length > 0 and gain >= self.cfg.blur_probe_gain * (1.0 - sharp):
+            # along the same direction: a frame smeared by motion gains little from more of it, whatever the render
+            back = smeared(live, band(ref))
+            gain -= max(0.0, max(v for (ln, a), v in back.items() if a == ang and ln > 0) - sharp)
+        fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         across = scores.get((length, (ang + 90.0) % 180.0), best)
-        # Smoothing of any kind helps a little where the render is noisier than the frame (sparse scans seen close
-        # up). A blur counts only when it explains a real share of what the sharp render leaves unexplained, and
-        # when it is one: smearing along its direction must fit clearly better than across it.
-        gain = best - sharp
-        if length == 0 or gain < self.cfg.blur_probe_gain * (1.0 - sharp) or best - across < 0.5 * gain:
+        if length == 0 or gain < self.cfg.blur_probe_gain * (1.0 - sharp) or best - across < 0.5 * along:
             return 0.0, 0.0
         return length / (kf.scale * s), ang
 
