@@ -369,6 +369,31 @@ def test_a_cold_frame_needs_a_clear_margin_over_look_alikes_elsewhere(rm_setup):
     assert near is not None and G7.distance_to(near.T_wc)[0] < 0.05
 
 
+def test_a_cold_frame_s_rivals_are_sought_deeper_in_the_ranking(rm_setup):
+    """With no recent pose, rivals are sought among more of the ranked views (``reloc_cold_check_fraction``): with
+    480 px faces, a survey-density warehouse frame fitted an aisle 38 m off with 111 inliers, the top 33 views held one
+    look-alike place (could be chance) and the top 83 three. Here two look-alikes rank just below the frame's own
+    view: a check of one view sees one of them and takes the pose, a deeper one sees both and refuses it; a moment
+    after a reported pose (searched within reach) the depth does not apply."""
+    from services.localize.render_match import _Frame
+
+    renderer, ext, db, seq, _ = rm_setup
+    f7, G7 = seq.read(7), seq.groundtruth.poses[7]
+    aisles = _twin(db, np.array([[10.0, 0.0, 0.0], [20.0, 0.0, 0.0]]), keep=0.6)
+    aisles.vlad[db.n_views:] *= 0.999  # each look-alike ranks right after the view it copies
+    shallow = dict(reloc_candidates=1, reloc_widen=1, reloc_check=2, reloc_check_fraction=0.0)
+
+    def cold(cfg):
+        r = RenderMatchTracker(renderer, ext, aisles, cfg).process(f7.image, seq.camera)
+        return r.status == Status.RELOCALIZED and G7.distance_to(r.T_wc)[0] < 0.05, r.reason
+
+    assert cold(RMConfig(**shallow, reloc_cold_check_fraction=0.0))[0]  # one look-alike seen: could be chance
+    ok, why = cold(RMConfig(**shallow, reloc_cold_check_fraction=0.5))
+    assert not ok and why.startswith("ambiguous place"), why
+    tr = RenderMatchTracker(renderer, ext, aisles, RMConfig(**shallow, reloc_cold_check_fraction=0.5))
+    near = tr._relocalize(_Frame(f7.image, seq.camera, {}, None, 0.0, None), (G7.t, 25.0))
+    assert near is not None and G7.distance_to(near.T_wc)[0] < 0.05
+
 def test_a_weak_top_of_the_database_ranking_widens_the_search(rm_setup):
     """The global descriptor ranks a place's best view low at times (office frame 143: 26 inliers in the top 8, 62
     from a view ranked below). When no view of the top reloc_candidates gives a pose enough inliers, the

@@ -116,7 +116,11 @@ class RMConfig:
     reach_m: float = 0.3  # ... velocity leads (+ this): not the identical rack bay 2 m on (0.6 m after 0.4 s, 1.5 m after 0.9 s)
     reloc_check: int = 32  # a relocalization is refused when views ranked up to this hold a rival place ...
     reloc_check_fraction: float = 0.02  # ... or up to this fraction of the database, if more (warehouse at 1 m, 6180
-    #                                     views: the top 32 held no rival of a pose 40 m off, the top 128 four)
+    #                                     views: the top 32 held no rival of a pose 40 m off, the top 128 four) ...
+    reloc_cold_check_fraction: float = 0.05  # ... or this fraction when nothing says where the camera is (no recent
+    #                                          pose): survey-density warehouse, 480 px faces, cold frame 325 fitted an
+    #                                          aisle 38 m off with 111 inliers; the top 33 views held one place with half
+    #                                          that, the top 83 three (a periodic site), and the true place none
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
@@ -782,7 +786,8 @@ class RenderMatchTracker:
             return None
         coarse, r, self.kf = found
         t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
-        check = max(cfg.reloc_check, int(np.ceil(cfg.reloc_check_fraction * self.db.n_views)))
+        fraction = cfg.reloc_check_fraction if near is not None else max(cfg.reloc_check_fraction, cfg.reloc_cold_check_fraction)
+        check = max(cfg.reloc_check, int(np.ceil(fraction * self.db.n_views)))
 
         def verify(rival: PnpResult) -> bool:  # a near rival is a place of its own when it verifies elsewhere
             v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds)
