@@ -373,8 +373,8 @@ def test_a_cold_frame_s_rivals_are_sought_deeper_in_the_ranking(rm_setup):
     """With no recent pose, rivals are sought among more of the ranked views (``reloc_cold_check_fraction``): with
     480 px faces, a survey-density warehouse frame fitted an aisle 38 m off with 111 inliers, the top 33 views held one
     look-alike place (could be chance) and the top 83 three. Here two look-alikes rank just below the frame's own
-    view: a check of one view sees one of them and takes the pose, a deeper one sees both and refuses it; a moment
-    after a reported pose (searched within reach) the depth does not apply."""
+    view: a check of one view sees one of them and takes the pose, a deeper one sees both and refuses it. Searched
+    within reach of a recent pose (look-alikes there count only at 80 % of the inliers), the place is taken."""
     from services.localize.render_match import _Frame
 
     renderer, ext, db, seq, _ = rm_setup
@@ -393,6 +393,7 @@ def test_a_cold_frame_s_rivals_are_sought_deeper_in_the_ranking(rm_setup):
     tr = RenderMatchTracker(renderer, ext, aisles, RMConfig(**shallow, reloc_cold_check_fraction=0.5))
     near = tr._relocalize(_Frame(f7.image, seq.camera, {}, None, 0.0, None), (G7.t, 25.0))
     assert near is not None and G7.distance_to(near.T_wc)[0] < 0.05
+
 
 def test_a_weak_top_of_the_database_ranking_widens_the_search(rm_setup):
     """The global descriptor ranks a place's best view low at times (office frame 143: 26 inliers in the top 8, 62
@@ -652,8 +653,6 @@ def test_a_relocalizing_frame_s_blur_is_read_from_the_image(rm_setup, site_480):
     noisy = dataclasses.replace(kf, render=dataclasses.replace(kf.render, rgb=np.clip(
         kf.render.rgb + np.random.default_rng(1).normal(0, 25, kf.render.rgb.shape), 0, 255).astype(np.uint8)))
     assert tr._image_blur(_Frame(f.image, cam, {}, None, 0.0, None), noisy)[0] == 0.0
-
-
 
 
 def test_a_sparse_render_does_not_make_a_sharp_frame_read_as_blurred(rm_setup, site_480, small_site):
