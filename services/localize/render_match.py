@@ -96,6 +96,10 @@ class RMConfig:
     #                              pixels per radian (XFeat matches poorly across larger scale changes: a 1280x720
     #                              frame matched at full size, 6x the 320 px faces, relocalized nowhere for 70 frames;
     #                              a VGA frame at the CPU's 480 px is 2.3x); 0 = the tracking scale
+    reloc_top_k: int = 2048  # a cold relocalizing frame that no place fits with the extractor's keypoints (1024) is
+    #                          searched and verified again with this many: people in front of the camera take many of
+    #                          the strongest (benchmarks/occluders.py: two passers-by over 28 % of the frame; cold frame
+    #                          0 had 18 inliers with its best view, not 177, and 31 with 2048)
     reloc_min_inliers: int = 30  # a database view's coarse pose needs this many inliers to be verified (rendered at and
     #                              matched again; false poses from a wrong view reach 10-40) ...
     reloc_weak_inliers: int = 12  # ... or this many while the camera cannot be further than reloc_weak_reach_m from where
@@ -248,7 +252,8 @@ class _Frame:
     motion: tuple[Pose, float] | None  # camera motion (T_prev^-1 T_last) over dt seconds, for blur
     dt_next: float  # seconds since the last localized frame
     exposure_s: float | None
-    live: dict = field(default_factory=dict)  # scale -> Features
+    live: dict = field(default_factory=dict)  # scale -> (keypoint budget, Features)
+    top_k: int | None = None  # keypoints matched on this frame (None: the extractor's; more for a crowded cold frame)
     gray: dict = field(default_factory=dict)  # (width, height) -> the live frame in normalised grey at that size
     relocalizing: bool = False
     reason: str | None = None  # why this frame has no pose, when it has none
@@ -344,12 +349,15 @@ class RenderMatchTracker:
         return s
 
     def _live(self, fr: _Frame, scale: float) -> Features:
-        """Live-frame features at ``scale`` of its resolution, computed once per frame and scale."""
-        if scale not in fr.live:
+        """Live-frame features at ``scale`` of its resolution, the frame's ``top_k`` strongest; computed once per frame,
+        scale and budget (XFeat's strongest k of a larger budget are exactly what it gives for k)."""
+        k = fr.top_k or self.extractor.top_k
+        if fr.live.get(scale, (0, None))[0] < k:
             t0 = time.perf_counter()
-            fr.live[scale] = self.extractor.extract(fr.image, max_side=max(32, round(scale * max(fr.image.shape[:2]))))
+            fr.live[scale] = (k, self.extractor.extract(fr.image, top_k=k, max_side=max(32, round(scale * max(fr.image.shape[:2])))))
             fr.tm["features_ms"] = fr.tm.get("features_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
-        return fr.live[scale]
+        f = fr.live[scale][1]
+        return f if len(f) <= k else f.subset(slice(0, k))
 
     def _points(self, render, rgb: np.ndarray, tm: dict) -> tuple[Features, np.ndarray]:
         """Features of a render image with the world points behind them (depth from the scan points around
@@ -748,10 +756,25 @@ class RenderMatchTracker:
         ambiguity, far = cfg.reloc_ambiguity, (cfg.reloc_cold_ambiguity if near is None else None)
         floor = min(need, int(min(ambiguity, far or ambiguity) * cfg.reloc_min_inliers))  # rivals may be weaker than the best
         within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
-        hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
-        if (not hyps or hyps[0][0].n_inliers < need) and cfg.reloc_widen > cfg.reloc_candidates:
-            hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within,
-                                      known=hyps, skip=cfg.reloc_candidates)
+
+        def search(feats: Features) -> list[tuple[PnpResult, int]]:
+            hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
+            if (not hyps or hyps[0][0].n_inliers < need) and cfg.reloc_widen > cfg.reloc_candidates:
+                hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within,
+                                          known=hyps, skip=cfg.reloc_candidates)
+            return hyps
+
+        hyps = search(feats)
+        if (not hyps or hyps[0][0].n_inliers < need) and near is None and len(feats) >= self.extractor.top_k \
+                and cfg.reloc_top_k > len(feats) and fr.top_k is None:
+            # a cold frame no place fits, its keypoint budget used up: something in front of the scene (people) may
+            # hold its strongest keypoints. Searched again, and verified, with more of them (only cold: a LOST stretch
+            # near a recent pose would pay for it on every frame of a whip pan)
+            fr.top_k = cfg.reloc_top_k
+            t1 = time.perf_counter()
+            feats = self._live(fr, self._reloc_scale(fr.camera))
+            t0 += time.perf_counter() - t1  # (features_ms)
+            hyps = search(feats)
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
