@@ -98,8 +98,8 @@ def localize(map_dir: Path, seq_dir: Path, mode: str = "direct", cold: int = 40,
         cold_n += 1
         if r.status == Status.RELOCALIZED:
             dt, dr = seq.groundtruth_pose(f.stamp).distance_to(r.T_wc)
-            cold_ok += dt < 0.05 and dr < 1.0
-            cold_off += not (dt < 0.05 and dr < 1.0)
+            hit = dt < 0.05 and dr < 1.0
+            cold_ok, cold_off = cold_ok + hit, cold_off + (not hit)
     a = compute_ape(seq.groundtruth, traj, "none") if len(traj) else None
     return {"frames": len(seq), "localized": len(traj), "first": first, "relocalizations": counts[Status.RELOCALIZED],
             "ape_cm": 100 * a.trans_rmse if a else float("nan"), "ape_deg": a.rot_rmse_deg if a else float("nan"),

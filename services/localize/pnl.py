@@ -785,8 +785,8 @@ class PnlLocalizer:
             r2 = self._track(fr, Pose(r[0].T, -r[0].T @ r[1]), self.cfg.fine_radius_px, tm)
             if self._plausible(r2):
                 r = r2
-        if self._plausible(r) and not self._good(r, fr) and self.patches is not None and self.cfg.align \
-                and self.cfg.direct_landmarks > 0:
+        can_align = self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0
+        if self._plausible(r) and not self._good(r, fr) and can_align:
             # the keypoint pose is close but not sure: the direct step from it, as from a tracking prediction (cold
             # frames of the office walk: 6 of 11 failures were plausible keypoint poses of 39-84 inliers). Only from
             # within align_sigma_factor x the gates, as in tracking: from further, the windows settle on a
@@ -798,7 +798,7 @@ class PnlLocalizer:
             rd = self._aligned_from(fr, Pose(r[0].T, -r[0].T @ r[1]), near, tm)
             if rd is not None:
                 r = rd
-        if not self._plausible(r) and self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0:
+        if not self._plausible(r) and can_align:
             # the keypoints did not hold the coarse pose: its landmarks' patches searched around it and aligned, as
             # when a tracking prediction is off (cold frames of the 90-degree-lens walk: 22 -> 27 of 40 relocalized)
             rd = self._aligned_from(fr, T_wc, False, tm)

@@ -604,13 +604,13 @@ class RenderMatchTracker:
             x = (x - cv2.GaussianBlur(x, (0, 0), sigma))[m:-m, m:-m]
             return (x - x.mean()) / (x.std() + 1e-6)
 
-        def smeared(src: np.ndarray, fixed: np.ndarray) -> dict[tuple[float, float], float]:
+        def smeared(src: np.ndarray, fixed: np.ndarray, angles=(0.0, 45.0, 90.0, 135.0)) -> dict[tuple[float, float], float]:
             """(length in probe pixels, direction) -> correlation of ``src`` smeared so with ``fixed`` (band-passed)."""
             out = {}
             for length in self.cfg.blur_probe_px:
                 k = 2 * int(round(length * w / 640 / 2)) + 1  # odd: the line's middle on the kernel's anchor (no shift)
                 length = length * w / 640 if k > 1 else 0.0
-                for ang in ([0.0] if k == 1 else [0.0, 45.0, 90.0, 135.0]):
+                for ang in ([0.0] if k == 1 else angles):
                     ker = np.zeros((k, k), np.float32)
                     c = k // 2
                     for j in range(-c, c + 1):  # a line through the centre at this angle
@@ -629,8 +629,8 @@ class RenderMatchTracker:
         gain = along = best - sharp
         if length > 0 and gain >= self.cfg.blur_probe_gain * (1.0 - sharp):
             # along the same direction: a frame smeared by motion gains little from more of it, whatever the render
-            back = smeared(live, band(ref))
-            gain -= max(0.0, max(v for (ln, a), v in back.items() if a == ang and ln > 0) - sharp)
+            back = smeared(live, band(ref), (ang,))
+            gain -= max(0.0, max(v for (ln, _), v in back.items() if ln > 0) - sharp)
         fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         across = scores.get((length, (ang + 90.0) % 180.0), best)
         if length == 0 or gain < self.cfg.blur_probe_gain * (1.0 - sharp) or best - across < 0.5 * along:
@@ -765,8 +765,7 @@ class RenderMatchTracker:
             return hyps
 
         hyps = search(feats)
-        if (not hyps or hyps[0][0].n_inliers < need) and near is None and len(feats) >= self.extractor.top_k \
-                and cfg.reloc_top_k > len(feats) and fr.top_k is None:
+        if (not hyps or hyps[0][0].n_inliers < need) and near is None and self.extractor.top_k <= len(feats) < cfg.reloc_top_k:
             # a cold frame no place fits, its keypoint budget used up: something in front of the scene (people) may
             # hold its strongest keypoints. Searched again, and verified, with more of them (only cold: a LOST stretch
             # near a recent pose would pay for it on every frame of a whip pan)
