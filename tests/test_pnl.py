@@ -294,7 +294,7 @@ def test_a_crowded_cold_frame_is_matched_with_more_keypoints(pnl_site, pnl_map):
     place fits with the ``reloc_keypoints`` strongest is matched with up to ``reloc_keypoints_crowded``. A strip of
     printed text over 15 % of each test frame: no place with 600 on any of the 8 (9-30 descriptor matches, mostly not
     held by one group of keyframes); with 1000, 7 of the 8 relocalize within 0.4 cm / 0.08 deg. (benchmarks/occluders.py:
-    the office walk with passers-by over 28 % of the frame, 236 -> 260 of 300 frames; clean walks never pay.)"""
+    the office walk with passers-by over 28 % of the frame, 236 -> 257 of 300 frames; clean walks never pay.)"""
     import cv2
 
     from services.io.sequence import open_sequence

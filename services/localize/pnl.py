@@ -790,10 +790,11 @@ class PnlLocalizer:
                 rows = self._voted_rows(lm)
             qsel = order[done:budget]
             done = budget
+            t1 = time.perf_counter()
             best, d1, d2 = knn2_hamming(idx._bf, fr.feats.desc[qsel], idx.desc[rows])
             keep = (best >= 0) & (d1 <= cfg.reloc_max_hamming) & (d1 < cfg.reloc_ratio * d2)
             q, lm = np.concatenate([q, qsel[keep]]), np.concatenate([lm, rows[best[keep]]])
-            tm["reloc_match_ms"] = 1e3 * (time.perf_counter() - t0)
+            tm["reloc_match_ms"] = tm.get("reloc_match_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
             results = self._places(fr, q, lm) if len(q) >= cfg.reloc_min_inliers else []
             if results and max(n for n, _ in results) >= cfg.reloc_min_inliers:
                 break
