@@ -768,6 +768,9 @@ class PnlLocalizer:
         return idx._reloc_rows[np.isin(idx._reloc_rows, near)]
 
     def _relocalize(self, fr: _Frame, tm: dict):
+        """A pose with no prior: descriptor matches to the map's landmarks, coarse poses of the places they vote for
+        (:meth:`_places`), refused when two places fit about as well, then tracked from the best and aligned to its
+        landmarks' patches. The result as :meth:`_track` gives it, or None with ``fr.reason`` saying why."""
         self._features(fr, tm)
         t0 = time.perf_counter()
         idx, cfg = self.idx, self.cfg
