@@ -728,12 +728,12 @@ class PnlLocalizer:
         """Per keyframe, how many of the landmarks ``lm`` it observes."""
         return np.bincount(self.idx.obs_kf[np.isin(self.idx.obs_lm, lm)], minlength=len(self.idx.kf_ids))
 
-    def _places(self, fr: _Frame, q: np.ndarray, lm: np.ndarray) -> list[tuple[int, Pose]]:
+    def _places(self, fr: _Frame, q: np.ndarray, lm: np.ndarray, votes: np.ndarray) -> list[tuple[int, Pose]]:
         """Coarse poses from descriptor matches (frame keypoints ``q`` to landmarks ``lm``): the keyframes that observe
-        most of the matched landmarks vote, and each of the best-voted places (keyframes within 2 m) is solved by
-        PnP-RANSAC from the matches to its landmarks. Returns (inliers, camera-to-world) per place tried."""
+        most of the matched landmarks vote (``votes``, :meth:`_votes`), and each of the best-voted places (keyframes
+        within 2 m) is solved by PnP-RANSAC from the matches to its landmarks. Returns (inliers, camera-to-world) per
+        place tried."""
         idx, cfg = self.idx, self.cfg
-        votes = self._votes(lm)
         results: list[tuple[int, Pose]] = []
         tried_centers: list[np.ndarray] = []
         for k in np.argsort(-votes)[: 3 * cfg.reloc_keyframes]:
@@ -755,11 +755,10 @@ class PnlLocalizer:
                 results.append((n, T))
         return results
 
-    def _voted_rows(self, lm: np.ndarray) -> np.ndarray:
-        """The relocalization rows of the landmarks seen from within 2 m of the keyframes that observe the most of ``lm``
-        (a frame's first descriptor matches): where a second, cheaper kNN looks."""
+    def _voted_rows(self, votes: np.ndarray) -> np.ndarray:
+        """The relocalization rows of the landmarks seen from within 2 m of the best-voted keyframes (``votes`` of a
+        frame's first descriptor matches): where a second, cheaper kNN looks."""
         idx, cfg = self.idx, self.cfg
-        votes = self._votes(lm)
         top = [k for k in np.argsort(-votes)[: 3 * cfg.reloc_keyframes] if votes[k] >= 2]
         if not top:
             return idx._reloc_rows[:0]
@@ -784,13 +783,13 @@ class PnlLocalizer:
         # warehouse map then took 1.1 s instead of 0.6; this way 0.7)
         order = np.argsort(-fr.feats.responses)
         q, lm, done = np.zeros(0, np.int64), np.zeros(0, np.int64), 0
-        rows = idx._reloc_rows
+        rows, votes = idx._reloc_rows, None
         for budget in (cfg.reloc_keypoints, cfg.reloc_keypoints_crowded):
             budget = min(budget, len(order))
             if budget <= done:
                 break
             if done:
-                rows = self._voted_rows(lm)
+                rows = self._voted_rows(self._votes(lm) if votes is None else votes)
             qsel = order[done:budget]
             done = budget
             t1 = time.perf_counter()
@@ -798,7 +797,10 @@ class PnlLocalizer:
             keep = (best >= 0) & (d1 <= cfg.reloc_max_hamming) & (d1 < cfg.reloc_ratio * d2)
             q, lm = np.concatenate([q, qsel[keep]]), np.concatenate([lm, rows[best[keep]]])
             tm["reloc_match_ms"] = tm.get("reloc_match_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
-            results = self._places(fr, q, lm) if len(q) >= cfg.reloc_min_inliers else []
+            results, votes = [], None
+            if len(q) >= cfg.reloc_min_inliers:
+                votes = self._votes(lm)
+                results = self._places(fr, q, lm, votes)
             if results and max(n for n, _ in results) >= cfg.reloc_min_inliers:
                 break
         tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
