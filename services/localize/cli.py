@@ -85,6 +85,11 @@ def register(sub) -> None:
                         "stretch (frames recorded before the camera saw a place it could tell apart, e.g. an aisle of "
                         "identical racks). Same gates; a stretch is kept only if its track back lands on the pose "
                         "before it. The summary's 'backfilled' counts them; FPS then covers both passes")
+    p.add_argument("--rolling-shutter", type=float, default=0.0, metavar="MS",
+                   help="the camera's rolling-shutter readout, first row to last, in milliseconds (phones: 10-30; "
+                        "default 0, a global shutter). Frames are re-sampled as if read at their middle row's time "
+                        "from the tracked turn rate; poses and stamps are the middle row's. Without it, a phone's "
+                        "fast turns cost centimetres and tenths of a degree")
     p.add_argument("--no-camera-check", action="store_true",
                    help="(--method rm) skip the check, after localizing, that the frames agree with their camera.json "
                         "(a fit of the intrinsics on up to 12 localized frames; a few seconds)")
@@ -249,7 +254,8 @@ def run_localize(args) -> int:
     scan = load_scan(args.scan)
     renderer = Renderer(scan, device=args.device)
     cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
-                   direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points)
+                   direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points,
+                   readout_s=getattr(args, "rolling_shutter", 0.0) / 1000.0)
     tracker = RenderMatchTracker(renderer, _tracking_extractor(renderer, args.max_side), db, cfg)
     return localize_and_report(tracker, seq, args, args.method, stamped=True, odometry=odometry,
                                after=None if getattr(args, "no_camera_check", False) else lambda traj: _camera_check(tracker, seq, traj))

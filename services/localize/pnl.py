@@ -68,6 +68,7 @@ import numpy as np
 from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hamming, level_centres
 from services.geometry.blur import blur_length_px
 from services.geometry.camera import Camera
+from services.geometry.rolling_shutter import angular_velocity, unroll
 from services.geometry.se3 import Pose
 from services.localize.carry import OdometryCarry
 from services.localize.odometry_check import OdometryCheck
@@ -113,6 +114,8 @@ class PnlConfig:
     reloc_ambiguity: float = 0.8  # another place with this share of the best's inliers makes a relocalization ambiguous,
     reloc_cold_ambiguity: float = 0.5  # ... and so do two places over 2 m away with this share (services.relocalize.ambiguity)
     use_velocity: bool = True
+    readout_s: float = 0.0  # rolling shutter: rows read top to bottom over this long (0 = global shutter); a frame with a
+    #                         motion to predict it is re-sampled as if read at its middle row's time (as Render & Match)
     odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for
     #                                up to this long and the next frame tracks from it (as Render & Match does)
     cell_px: int = 24  # keypoint grid for window search
@@ -699,6 +702,15 @@ class PnlLocalizer:
         ident = Pose.identity()
         return blur_length_px(fr.camera, ident, ident.interpolate(self._vel, self.cfg.exposure_fraction))
 
+    def _scene_depth(self, T_wc: Pose) -> float | None:
+        """The median depth (m) of the local landmarks in front of the camera at ``T_wc``: how far the scene is, for
+        the share of a rolling shutter's skew that the camera's travel makes."""
+        self._local(T_wc)
+        Xc = (self._local_P - T_wc.t) @ T_wc.R
+        z = Xc[:, 2]
+        z = z[(z > 0.1) & (np.abs(Xc[:, 0]) < z) & (np.abs(Xc[:, 1]) < z)]  # within a 90 degree cone ahead
+        return float(np.median(z)) if len(z) else None
+
     def _gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey (float32), undistorted like its keypoints; computed once per frame."""
         if fr.gray is None:
@@ -884,6 +896,11 @@ class PnlLocalizer:
         odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
         motion = self.odometry.use(motion)
         self._stamp = stamp
+        move = motion if motion is not None else (self._vel if self.cfg.use_velocity else None)
+        if self.cfg.readout_s > 0 and prior is None and self.T_last is not None and move is not None:
+            # rows read while the camera moved: re-sampled into the middle row's view first
+            fr.image = unroll(fr.image, camera, angular_velocity(move.R, dt), self.cfg.readout_s, velocity=move.t / dt,
+                              depth_m=self._scene_depth(self.T_last))
         pred = prior
         if pred is None and self.T_last is not None:
             pred = self.T_last

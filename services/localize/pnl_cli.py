@@ -27,7 +27,8 @@ def run_localize_pnl(args) -> int:
     seq = open_sequence(args.sequence)
     odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes) if getattr(args, "odometry", None) else None
     loc = PnlLocalizer.load(map_dir, PnlConfig(align=not getattr(args, "no_align", False),
-                                               direct_landmarks=0 if getattr(args, "no_direct", False) else PnlConfig().direct_landmarks))
+                                               direct_landmarks=0 if getattr(args, "no_direct", False) else PnlConfig().direct_landmarks,
+                                               readout_s=getattr(args, "rolling_shutter", 0.0) / 1000.0))
     if loc.patches is None:
         log.info("%s has no landmark patches (a map from before them, or from stella_vslam): keypoint measurements only", map_dir)
     return localize_and_report(loc, seq, args, "pnl", odometry=odometry)

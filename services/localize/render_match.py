@@ -62,6 +62,7 @@ from services.features.xfeat import Features, XFeatExtractor
 from services.geometry.blur import blur_length_px, motion_blur_linear
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
+from services.geometry.rolling_shutter import angular_velocity, unroll
 from services.geometry.se3 import Pose
 from services.localize.carry import OdometryCarry
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
@@ -162,6 +163,9 @@ class RMConfig:
     #                                     (a close-up render: a few strong label edges outshine the rest)
     blur_probe_px: tuple[float, ...] = (0, 4, 8, 12, 16, 24, 32, 48)  # blur lengths (px at 640 wide) tried on the render
     #                                     at a relocalized pose to read the frame's blur from the image; () = off
+    readout_s: float = 0.0  # rolling shutter: the camera reads its rows top to bottom over this long (phones 10-30 ms;
+    #                         0 = global shutter). A frame with a motion to predict it is re-sampled as if read at its
+    #                         middle row's time (services.geometry.rolling_shutter; office walk at 20 ms: see RESULTS)
     blur_probe_gain: float = 0.05  # ... the best length counts when it removes this share of the sharp render's misfit
     #                                (1 - correlation); a smaller gain is render noise smoothed away
 
@@ -180,6 +184,7 @@ class Keyframe:
     blurred: tuple | None = None  # (features, world points, normalised grey) of that blurred render
     direct: tuple | None = None  # (LandmarkPatches, world points, render pixels): corner patches, for direct tracking
     direct_blurred: LandmarkPatches | None = None  # the same corners' patches cut from the blurred render
+    median_depth: float | None = None  # of the render's measured depth (see RenderMatchTracker._scene_depth)
 
 
 @dataclass
@@ -304,6 +309,17 @@ class RenderMatchTracker:
         self.lost_frames = 0
         self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried through LOST frames by the odometry
         self.odometry = OdometryCheck()  # whether the device's odometry agrees with the tracked motion (else unused)
+
+    def _scene_depth(self) -> float | None:
+        """The median depth (m) the current keyframe's render measured: how far the scene is, for the share of a
+        rolling shutter's skew that the camera's travel makes (it shrinks with distance)."""
+        if self.kf is None:
+            return None
+        if self.kf.median_depth is None:
+            d = self.kf.render.depth[::4, ::4]
+            d = d[d > 0]
+            self.kf.median_depth = float(np.median(d)) if len(d) else 0.0
+        return self.kf.median_depth or None
 
     def _lose(self) -> None:
         self.kf: Keyframe | None = None
@@ -864,6 +880,10 @@ class RenderMatchTracker:
                     (stamp - self.stamp_last) if consecutive else 0.0, exposure_s)
         if motion is not None and consecutive:
             fr.motion = (motion, fr.dt_next)
+        if self.cfg.readout_s > 0 and fr.motion is not None:  # rows read while the camera moved: undo that first
+            D, dt = fr.motion
+            fr.image = unroll(image, camera, angular_velocity(D.R, dt), self.cfg.readout_s, velocity=D.t / max(dt, 1e-6),
+                              depth_m=self._scene_depth())
         status = Status.TRACKING
         r: PnpResult | None = None
         rerendered = False

@@ -10,6 +10,7 @@ examples:
   cristal sim --preset office --frames 60 --lidar-step 0.4 --out small/   a quick small site (tests, demos)
   cristal sim --preset warehouse --seed 3 --out wh/            60 x 40 m hall with shelf rows, 600 frames
   cristal sim --preset office --distortion -0.12 0.03 0 0 0 --out lens/   a camera with radial distortion
+  cristal sim --preset office --rolling-shutter 20 --out rs/     a phone-like rolling shutter (rows read over 20 ms)
 
 what you get (docs/CONVENTIONS.md layout):
   site/scan.ply                    colored LiDAR scan, world frame in metres (z up)
@@ -43,6 +44,9 @@ def register(sub) -> None:
     p.add_argument("--hfov", type=float, dest="hfov_deg", help="horizontal field of view in degrees (default 66)")
     p.add_argument("--distortion", type=float, nargs=5, metavar=("K1", "K2", "P1", "P2", "K3"),
                    help="OpenCV lens distortion of the camera (default: none)")
+    p.add_argument("--rolling-shutter", type=float, metavar="MS",
+                   help="rolling-shutter readout time in ms, rows top to bottom (phones: 10-30; default 0 = global "
+                        "shutter); stamps and ground truth are the middle row's")
     p.add_argument("--lidar-step", type=float, dest="lidar_step_deg",
                    help="scanner angular step in degrees (office 0.2, warehouse 0.4); halving it quadruples the points")
     p.set_defaults(func=run_sim)
@@ -67,7 +71,8 @@ def run_sim(args) -> int:
 
     cfg = config_for(args.preset, seed=args.seed, frames=args.frames, sequences=args.sequences, fps=args.fps,
                      width=args.width, height=args.height, hfov_deg=args.hfov_deg,
-                     distortion=tuple(args.distortion) if args.distortion else None, lidar_step_deg=args.lidar_step_deg)
+                     distortion=tuple(args.distortion) if args.distortion else None, lidar_step_deg=args.lidar_step_deg,
+                     readout_s=args.rolling_shutter / 1000.0 if args.rolling_shutter else None)
     t0 = time.perf_counter()
     s = generate_site(cfg, args.out)
     dt = time.perf_counter() - t0

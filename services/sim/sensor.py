@@ -32,6 +32,8 @@ class SensorModel:
     white_balance: tuple[float, float, float] = (1.06, 1.0, 0.92)
     jpeg_quality: int = 88
     max_blur_samples: int = 8
+    readout_s: float = 0.0  # rolling shutter: rows are read top to bottom over this long (phones 10-30 ms; 0 = global
+    #                         shutter). The frame's stamp and ground-truth pose are those of its middle row
 
 
 class AutoExposure:

@@ -152,6 +152,20 @@ class SceneRenderer:
                np.ascontiguousarray(lighting.lights, np.float64), np.ascontiguousarray(lighting.ambient, np.float64), out)
         return out, t, tri
 
+    def render_rows(self, row_poses: list[Pose], camera: Camera, lighting: Lighting) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`render`, each image row seen from its own camera-to-world pose (a rolling shutter); the depth of
+        a row is along its own camera's z."""
+        H, W = camera.height, camera.width
+        if len(row_poses) != H:
+            raise ValueError(f"{len(row_poses)} row poses for an image {H} rows high")
+        rays_c = _pixel_rays(camera).reshape(H, W, 3)
+        R = np.stack([T.R for T in row_poses])  # (H, 3, 3)
+        dirs = np.einsum("hwj,hij->hwi", rays_c, R).reshape(-1, 3)
+        origins = np.repeat(np.stack([T.t for T in row_poses]), W, axis=0)
+        rad, t, _ = self.cast(origins, dirs, lighting, 1.0 / max(camera.fx, camera.fy))
+        depth = np.where(np.isfinite(t), t, 0.0)
+        return rad.reshape(H, W, 3).astype(np.float32), depth.reshape(H, W).astype(np.float32)
+
     def render(self, T_wc: Pose, camera: Camera, lighting: Lighting) -> tuple[np.ndarray, np.ndarray]:
         """(H,W,3) float32 linear radiance and (H,W) float32 z-depth (0 where nothing is hit) for ``T_wc``."""
         rays_c = _pixel_rays(camera)  # z = 1, so t along them is the z-depth

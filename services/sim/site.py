@@ -136,7 +136,12 @@ def _write_sequence(scene: Scene, renderer: SceneRenderer, cfg: SiteConfig, came
         for i in progress(range(cfg.frames), desc=f"frames {root.name}", total=cfg.frames, unit="frame"):
             t = i / cfg.fps
             T_wc = walk.pose(t)
-            rad, depth = renderer.render(T_wc, camera, scene.camera_lighting)
+            if cfg.sensor.readout_s > 0:  # rolling shutter: row v is read at t + ((v + 0.5) / H - 0.5) * readout
+                H, ro = camera.height, cfg.sensor.readout_s
+                rows = [walk.pose(t + ((v + 0.5) / H - 0.5) * ro) for v in range(H)]
+                rad, depth = renderer.render_rows(rows, camera, scene.camera_lighting)
+            else:
+                rad, depth = renderer.render(T_wc, camera, scene.camera_lighting)
             Ta, Tb = walk.pose(t - exp / 2), walk.pose(t + exp / 2)
             n_sub = blur_samples(camera, Ta, Tb, cfg.sensor.max_blur_samples)
             if n_sub > 1:
@@ -197,5 +202,8 @@ def config_for(preset: str, **overrides) -> SiteConfig:
     step = overrides.pop("lidar_step_deg", None)
     if step is not None:
         base = replace(base, lidar=replace(base.lidar, step_deg=float(step)))
+    readout = overrides.pop("readout_s", None)
+    if readout is not None:
+        base = replace(base, sensor=replace(base.sensor, readout_s=float(readout)))
     overrides = {k: v for k, v in overrides.items() if v is not None}
     return replace(base, **overrides)
