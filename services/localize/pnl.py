@@ -338,6 +338,7 @@ class PnlLocalizer:
         self._local_rows = np.zeros(0, np.int64)
         self._local_P = np.zeros((0, 3))
         self.relocalizations = 0
+        self._rs_run = 0  # frames in a row whose rolling shutter was undone (see process)
         log.info("P&L localizer: %d keyframes, %d landmarks indexed in %.2f s", stella_map.n_keyframes,
                  stella_map.n_landmarks, time.perf_counter() - t0)
 
@@ -375,6 +376,7 @@ class PnlLocalizer:
         """Forget the pose: the next frame relocalizes."""
         self.T_last = None
         self._vel = None
+        self._rs_run = 0
         self.carry.reset()
 
     def seed(self, T_wc: Pose) -> None:
@@ -897,10 +899,13 @@ class PnlLocalizer:
         motion = self.odometry.use(motion)
         self._stamp = stamp
         move = motion if motion is not None else (self._vel if self.cfg.use_velocity else None)
-        if self.cfg.readout_s > 0 and prior is None and self.T_last is not None and move is not None:
-            # rows read while the camera moved: re-sampled into the middle row's view first
+        unrolled = self.cfg.readout_s > 0 and prior is None and self.T_last is not None and move is not None
+        if unrolled:  # rows read while the camera moved: re-sampled into the middle row's view first
             fr.image = unroll(fr.image, camera, angular_velocity(move.R, dt), self.cfg.readout_s, velocity=move.t / dt,
                               depth_m=self._scene_depth(self.T_last))
+        # reported only once the motion comes from frames unrolled too, or from the device (as Render & Match)
+        rs_settled = self.cfg.readout_s <= 0 or (unrolled and (motion is not None or self._rs_run >= 2))
+        self._rs_run = self._rs_run + 1 if unrolled else 0
         pred = prior
         if pred is None and self.T_last is not None:
             pred = self.T_last
@@ -948,9 +953,11 @@ class PnlLocalizer:
                 self.odometry.update(self._vel, odometry)
         else:
             self._vel = None
-        if not self._good(r, fr):  # weakly constrained: no pose reported, but tracking continues from it
+        if not self._good(r, fr) or not rs_settled:  # no pose reported, but tracking continues from it
             self.T_last = T_wc
             return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg,
-                             f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)")
+                             f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)"
+                             if not self._good(r, fr) else "rolling shutter not undone yet (the motion is measured over "
+                             "the next frames)")
         self.T_last = T_wc
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
