@@ -166,6 +166,10 @@ class FrameRequest(_Msg):
     - ``exposure_s``: optional exposure time of this frame (seconds), when the camera reports it. Fast
       frames are blurred; the server blurs its render to match, with this time if given (otherwise it
       calibrates one per client from the first fast frames).
+    - ``readout_s``: optional rolling-shutter readout of the camera (seconds from its first row to its last; phones
+      10-30 ms). The server re-samples the frame into its middle row's view from the tracked motion, and reports
+      poses (of the middle row, at ``stamp``) once that motion comes from frames it has undone. None or 0: a global
+      shutter.
     - ``reset``: forget this client's state (tracking starts over, by relocalization unless ``prior`` is given).
     - ``map``: optional map id the client expects; a server serving another map rejects with ``unknown_map``.
     - ``deadline_ms``: how long the client will wait for the reply; the server drops the frame (``dropped/deadline``)
@@ -182,6 +186,7 @@ class FrameRequest(_Msg):
     prior: PoseMsg | None = None
     motion: PoseMsg | None = None
     exposure_s: float | None = Field(default=None, ge=0.0, le=1.0)
+    readout_s: float | None = Field(default=None, ge=0.0, le=0.2)
     reset: bool = False
     map: str | None = Field(default=None, max_length=64)
     deadline_ms: float | None = Field(default=None, gt=0, le=600_000)

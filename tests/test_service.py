@@ -239,3 +239,25 @@ def test_fuzz_malformed_messages_against_live_server(service, small_site):
     seq = open_sequence(small_site[0] / "seq_00")
     assert cl.localize(seq.files[2].read_bytes(), seq.camera, reset=True, prior=seq.groundtruth.poses[2]).status.has_pose
     assert srv.health().ok
+
+
+def test_a_rolling_shutter_declared_per_frame_reaches_the_tracker(service, small_site):
+    """``FrameRequest.readout_s`` (a phone's rolling shutter): the server re-samples such frames into their middle
+    row's view from the tracked motion and reports poses only once that motion comes from frames it undid, so a new
+    client's first frames are answered LOST with that reason, then tracked (here a global-shutter walk, so the poses
+    that follow are as good as ever)."""
+    from services.client import reply_pose
+    from services.client.client import LocalizationClient
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    with LocalizationClient(config(connect=[endpoint(port)]), client_id="phone-1", site="lab", map_id="office",
+                            deadline_ms=5000) as phone:
+        assert phone.wait_for_server(5)
+        reps = [phone.localize(seq.files[i].read_bytes(), seq.camera, stamp=float(seq.stamps[i]), readout_s=0.02)
+                for i in range(6)]
+    assert reps[0].status is Status.LOST and reps[0].reason.startswith("rolling shutter not undone yet"), reps[0]
+    assert reps[-1].status.has_pose, reps[-1]
+    dt, dr = seq.groundtruth.poses[5].distance_to(reply_pose(reps[-1]))
+    assert dt < 0.05 and dr < 1.0, (dt, dr)

@@ -30,6 +30,9 @@ def register(sub) -> None:
     p.add_argument("--client-id", help="this device's id (default: random)")
     p.add_argument("--site", default="default")
     p.add_argument("--map-id", default="default")
+    p.add_argument("--rolling-shutter", type=float, default=0.0, metavar="MS",
+                   help="the camera's rolling-shutter readout, first row to last, in ms (phones: 10-30; default 0, a "
+                        "global shutter): the server and the local fallback undo it from the tracked motion")
     p.add_argument("--deadline", type=float, default=200.0, help="ms to wait for each pose before using the local one (default 200)")
     p.add_argument("--fps", type=float, default=0.0, help="pace frames at this rate (default: as fast as replies come)")
     p.add_argument("--frames", type=int, help="only the first N frames")
@@ -106,7 +109,8 @@ def run_stream(args) -> int:
                 d = client.download_bundle(d)
                 print(f"P&L map bundle downloaded to {d}", flush=True)
             fallback = load_local(d)
-        traj, st = stream_sequence(seq, client, fallback, args.out, frames=args.frames, fps=args.fps, odometry=odometry)
+        traj, st = stream_sequence(seq, client, fallback, args.out, frames=args.frames, fps=args.fps, odometry=odometry,
+                                   readout_s=args.rolling_shutter / 1000.0 or None)
     finally:
         client.close()
     s = st.summary()

@@ -144,10 +144,11 @@ class LocalizationClient:
     def localize(self, image: bytes | np.ndarray, camera: Camera, stamp: float = 0.0, stamp_text: str | None = None,
                  prior: Pose | None = None, motion: Pose | None = None, reset: bool = False,
                  encoding: ImageEncoding | None = None, deadline_ms: float | None = None,
-                 exposure_s: float | None = None) -> PoseReply | None:
+                 exposure_s: float | None = None, readout_s: float | None = None) -> PoseReply | None:
         """Send one frame and wait up to the deadline. None: no live server or no reply in time.
 
         ``exposure_s``: the frame's exposure time when the camera reports it (the server matches motion blur with it).
+        ``readout_s``: the camera's rolling-shutter readout, first row to last (phones; None: a global shutter).
         """
         if isinstance(image, np.ndarray):
             image, encoding = encode_image(image)
@@ -170,7 +171,8 @@ class LocalizationClient:
                                encoding=encoding, intrinsics=intrinsics_of(camera),
                                prior=PoseMsg.from_tum(p.to_tum()) if p is not None else None,
                                motion=PoseMsg.from_tum(motion.to_tum()) if motion is not None else None,
-                               exposure_s=exposure_s, reset=reset, map=self.map_id, deadline_ms=left_ms)
+                               exposure_s=exposure_s, readout_s=readout_s, reset=reset, map=self.map_id,
+                               deadline_ms=left_ms)
             rep = self.request_raw(encode(req), server, left_ms / 1e3)
             if rep is None:
                 # No reply. If the deadline is not spent, nobody answered at all: the worker is gone (its

@@ -883,7 +883,7 @@ class PnlLocalizer:
 
     # ---- the frame loop ---------------------------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, motion: Pose | None = None,
-                stamp: float | None = None) -> PnlResult:
+                stamp: float | None = None, readout_s: float | None = None) -> PnlResult:
         """Localize one frame (grey or BGR uint8). ``prior``: a camera-to-world hint (server) for this frame.
         ``motion``: the camera's motion since the previous frame from the device's odometry (``T_prev^-1 @ T_now``):
         it predicts the frame, and carries the pose on through LOST frames for up to ``odometry_carry_s``
@@ -899,12 +899,13 @@ class PnlLocalizer:
         motion = self.odometry.use(motion)
         self._stamp = stamp
         move = motion if motion is not None else (self._vel if self.cfg.use_velocity else None)
-        unrolled = self.cfg.readout_s > 0 and prior is None and self.T_last is not None and move is not None
+        readout = self.cfg.readout_s if readout_s is None else float(readout_s)  # (per frame: the service's clients)
+        unrolled = readout > 0 and prior is None and self.T_last is not None and move is not None
         if unrolled:  # rows read while the camera moved: re-sampled into the middle row's view first
-            fr.image = unroll(fr.image, camera, angular_velocity(move.R, dt), self.cfg.readout_s, velocity=move.t / dt,
+            fr.image = unroll(fr.image, camera, angular_velocity(move.R, dt), readout, velocity=move.t / dt,
                               depth_m=self._scene_depth(self.T_last))
         # reported only once the motion comes from frames unrolled too, or from the device (as Render & Match)
-        rs_settled = self.cfg.readout_s <= 0 or (unrolled and (motion is not None or self._rs_run >= 2))
+        rs_settled = readout <= 0 or (unrolled and (motion is not None or self._rs_run >= 2))
         self._rs_run = self._rs_run + 1 if unrolled else 0
         pred = prior
         if pred is None and self.T_last is not None:

@@ -864,7 +864,7 @@ class RenderMatchTracker:
 
     # ---- the frame loop --------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, stamp: float | None = None,
-                exposure_s: float | None = None, motion: Pose | None = None) -> FrameResult:
+                exposure_s: float | None = None, motion: Pose | None = None, readout_s: float | None = None) -> FrameResult:
         """Localize one frame.
 
         ``image``: uint8, any channel order. ``prior``: a pose hint (e.g. from odometry) used when the
@@ -872,6 +872,7 @@ class RenderMatchTracker:
         predicts motion at constant velocity and matches blurred frames. ``exposure_s``: the frame's
         exposure time when the camera reports it. ``motion``: the camera's motion since the previous
         frame from the device's own odometry (``T_prev^-1 @ T_now``); it replaces the constant-velocity guess.
+        ``readout_s``: the camera's rolling-shutter readout for this frame (None: ``cfg.readout_s``; 0: a global shutter).
         """
         t_start = time.perf_counter()
         odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
@@ -881,15 +882,16 @@ class RenderMatchTracker:
                     (stamp - self.stamp_last) if consecutive else 0.0, exposure_s)
         if motion is not None and consecutive:
             fr.motion = (motion, fr.dt_next)
-        unrolled = self.cfg.readout_s > 0 and fr.motion is not None
+        readout = self.cfg.readout_s if readout_s is None else float(readout_s)
+        unrolled = readout > 0 and fr.motion is not None
         if unrolled:  # rows read while the camera moved: undo that first
             D, dt = fr.motion
-            fr.image = unroll(image, camera, angular_velocity(D.R, dt), self.cfg.readout_s, velocity=D.t / max(dt, 1e-6),
+            fr.image = unroll(image, camera, angular_velocity(D.R, dt), readout, velocity=D.t / max(dt, 1e-6),
                               depth_m=self._scene_depth())
         # a rolling shutter is undone only once the motion comes from frames it was undone on (or from the device's
         # odometry): a cold frame turning at 90 deg/s was relocalized 12.6 cm / 1.5 deg off, and the motion from it
         # skews the next frames' unrolling (tests/test_pnl.py, the same for both localizers)
-        rs_settled = self.cfg.readout_s <= 0 or (unrolled and (motion is not None or self.rs_run >= 2))
+        rs_settled = readout <= 0 or (unrolled and (motion is not None or self.rs_run >= 2))
         self.rs_run = self.rs_run + 1 if unrolled else 0
         status = Status.TRACKING
         r: PnpResult | None = None

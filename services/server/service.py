@@ -399,7 +399,9 @@ class LocalizationServer:
             c.T_last = None
         prior = Pose.from_tum(req.prior.as_tum()) if req.prior is not None else None
         motion = Pose.from_tum(req.motion.as_tum()) if req.motion is not None else None
-        r = c.tracker.process(img, cam, prior, motion, stamp=req.stamp if req.stamp > 0 else None, exposure_s=req.exposure_s)
+        rolling = {"readout_s": req.readout_s} if req.readout_s else {}  # (backends from before it need not take it)
+        r = c.tracker.process(img, cam, prior, motion, stamp=req.stamp if req.stamp > 0 else None, exposure_s=req.exposure_s,
+                              **rolling)
         c.T_last = r.T_wc
         c.frames += 1
         tm.update({k: float(v) for k, v in r.timings.items() if k != "total_ms"})
