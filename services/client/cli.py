@@ -76,6 +76,9 @@ def run_stream(args) -> int:
 
     from services.cli import CliError, emit_summary
     from services.client.client import LocalizationClient
+
+    if not 0 <= args.rolling_shutter <= 200:
+        raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
     from services.client.fallback import load_local
     from services.client.stream import sources_path, stream_sequence
     from services.geometry.camera import Camera

@@ -233,6 +233,8 @@ def run_build_db(args) -> int:
 def run_localize(args) -> int:
     from services.cli import CliError
 
+    if not 0 <= args.rolling_shutter <= 200:
+        raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
     if args.method == "pnl":
         from services.localize.pnl_cli import run_localize_pnl
 

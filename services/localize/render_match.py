@@ -163,11 +163,11 @@ class RMConfig:
     #                                     (a close-up render: a few strong label edges outshine the rest)
     blur_probe_px: tuple[float, ...] = (0, 4, 8, 12, 16, 24, 32, 48)  # blur lengths (px at 640 wide) tried on the render
     #                                     at a relocalized pose to read the frame's blur from the image; () = off
+    blur_probe_gain: float = 0.05  # ... the best length counts when it removes this share of the sharp render's misfit
+    #                                (1 - correlation); a smaller gain is render noise smoothed away
     readout_s: float = 0.0  # rolling shutter: the camera reads its rows top to bottom over this long (phones 10-30 ms;
     #                         0 = global shutter). A frame with a motion to predict it is re-sampled as if read at its
     #                         middle row's time (services.geometry.rolling_shutter; office walk at 20 ms: see RESULTS)
-    blur_probe_gain: float = 0.05  # ... the best length counts when it removes this share of the sharp render's misfit
-    #                                (1 - correlation); a smaller gain is render noise smoothed away
 
 
 @dataclass

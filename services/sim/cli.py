@@ -66,8 +66,11 @@ def register(sub) -> None:
 def run_sim(args) -> int:
     import time
 
-    from services.cli import emit_summary
+    from services.cli import CliError, emit_summary
     from services.sim.site import config_for, generate_site
+
+    if args.rolling_shutter is not None and not 0 <= args.rolling_shutter <= 200:
+        raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
 
     cfg = config_for(args.preset, seed=args.seed, frames=args.frames, sequences=args.sequences, fps=args.fps,
                      width=args.width, height=args.height, hfov_deg=args.hfov_deg,
