@@ -713,6 +713,23 @@ class PnlLocalizer:
         z = z[(z > 0.1) & (np.abs(Xc[:, 0]) < z) & (np.abs(Xc[:, 1]) < z)]  # within a 90 degree cone ahead
         return float(np.median(z)) if len(z) else None
 
+    def _unrolled_again(self, image: np.ndarray, camera: Camera, fr: _Frame, r, move: Pose, dt: float, readout: float,
+                        tm: dict):
+        """A rolling-shutter frame unrolled with the motion model's last motion, tracked to ``r``: when the motion
+        from the last pose to ``r`` turns at a rate that would move the frame's edge rows by over half a pixel more,
+        it is unrolled again with that motion and aligned from ``r``. The motion model lags a pan that speeds up:
+        office walk at 20 ms, frames 263-268 0.4-0.8 deg off; unrolled again, 270 -> 268 frames, 0.76 -> 0.69 cm,
+        0.119 -> 0.091 deg. Returns (result, frame), the second round's when it holds."""
+        T_wc = Pose(r[0].T, -r[0].T @ r[1])
+        D = self.T_last.inverse() @ T_wc
+        w_then, w_now = angular_velocity(move.R, dt), angular_velocity(D.R, dt)
+        if np.linalg.norm(w_now - w_then) * readout / 2 * max(camera.fx, camera.fy) <= 0.5:
+            return r, fr
+        fr2 = self._frame(image, camera)
+        fr2.image = unroll(image, camera, w_now, readout, velocity=D.t / dt, depth_m=self._scene_depth(self.T_last))
+        r2 = self._direct_retry(fr2, T_wc, tm)
+        return (r2, fr2) if self._plausible(r2) else (r, fr)
+
     def _gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey (float32), undistorted like its keypoints; computed once per frame."""
         if fr.gray is None:
@@ -930,6 +947,8 @@ class PnlLocalizer:
                 r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
             if prior is None and not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
                 r = self._track(fr, self.T_last, 2 * self.cfg.coarse_radius_px, tm)
+        if unrolled and motion is None and self._plausible(r) and self.patches is not None:
+            r, fr = self._unrolled_again(image, camera, fr, r, move, dt, readout, tm)
         if not self._plausible(r):
             r = self._relocalize(fr, tm)
             if self._good(r, fr):

@@ -594,6 +594,24 @@ class RenderMatchTracker:
         return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * dc.sigma_px, 0, cov, 1.0,
                          float(np.degrees(1.0 / max(cam.fx, cam.fy))))
 
+    def _unrolled_again(self, image: np.ndarray, camera: Camera, fr: _Frame, r: PnpResult, readout: float) -> PnpResult:
+        """A rolling-shutter frame unrolled with the motion model's last motion, tracked to ``r``: when the motion from
+        the last pose to ``r`` turns at a rate that would move the frame's edge rows by over half a pixel more, the
+        frame is unrolled again with it (``fr.image``) and aligned from ``r`` directly (as P&L does: the motion model
+        lags a pan that speeds up). Returns that pose when it is good, else ``r``."""
+        D_then, dt = fr.motion
+        D = self.T_last.inverse() @ r.T_wc
+        w_then, w_now = angular_velocity(D_then.R, dt), angular_velocity(D.R, fr.dt_next)
+        if np.linalg.norm(w_now - w_then) * readout / 2 * max(camera.fx, camera.fy) <= 0.5:
+            return r
+        redo = dataclasses.replace(fr, image=unroll(image, camera, w_now, readout, velocity=D.t / max(fr.dt_next, 1e-6),
+                                                    depth_m=self._scene_depth()), live={}, gray={})
+        r2 = self._direct(self.kf, redo, r.T_wc)
+        if not self._good(r2) or self._far(r2.T_wc, self.kf):
+            return r
+        fr.image, fr.live, fr.gray = redo.image, redo.live, redo.gray
+        return r2
+
     def _blur_scaled(self, cov: np.ndarray | None, blur_px: float, power: float = 2.0) -> np.ndarray | None:
         """A pose covariance scaled by (blur / blur_sigma_px)^power when the frame is blurred more than blur_sigma_px
         (``blur_px`` as the features see it: pixels at the base resolution)."""
@@ -945,6 +963,8 @@ class RenderMatchTracker:
                 probe = self._keyframe(r.T_wc, fr) if blur_length_px(camera, self.kf.T_wc, r.T_wc) > 2.0 else self.kf
                 length, _ = self._image_blur(fr, probe)
                 r.cov = self._blur_scaled(r.cov, length * self._base_scale(camera) / r.px_factor)
+        if unrolled and motion is None and self.T_last is not None and self.kf is not None and self._plausible(r):
+            r = self._unrolled_again(image, camera, fr, r, readout)
         if not self._good(r) and self.T_last is None and self.recent is not None:
             # re-acquire near the last good pose: a blurred or featureless frame or two should not cost a database query
             T_rec, s_rec = self.recent
