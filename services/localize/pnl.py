@@ -718,8 +718,8 @@ class PnlLocalizer:
         """A rolling-shutter frame unrolled with the motion model's last motion, tracked to ``r``: when the motion
         from the last pose to ``r`` turns at a rate that would move the frame's edge rows by over half a pixel more,
         it is unrolled again with that motion and aligned from ``r``. The motion model lags a pan that speeds up:
-        office walk at 20 ms, frames 263-268 0.4-0.8 deg off; unrolled again, 270 -> 268 frames, 0.76 -> 0.69 cm,
-        0.119 -> 0.091 deg. Returns (result, frame), the second round's when it holds."""
+        office walk at 20 ms, frames 263-268 0.4-0.8 deg off; unrolled again, 270 -> 268 frames, 0.76 -> 0.70 cm,
+        0.119 -> 0.092 deg. Returns (result, frame), the second round's when it holds."""
         T_wc = Pose(r[0].T, -r[0].T @ r[1])
         D = self.T_last.inverse() @ T_wc
         w_then, w_now = angular_velocity(move.R, dt), angular_velocity(D.R, dt)

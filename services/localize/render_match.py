@@ -963,7 +963,8 @@ class RenderMatchTracker:
                 probe = self._keyframe(r.T_wc, fr) if blur_length_px(camera, self.kf.T_wc, r.T_wc) > 2.0 else self.kf
                 length, _ = self._image_blur(fr, probe)
                 r.cov = self._blur_scaled(r.cov, length * self._base_scale(camera) / r.px_factor)
-        if unrolled and motion is None and self.T_last is not None and self.kf is not None and self._plausible(r):
+        if (unrolled and motion is None and fr.motion is not None and self.T_last is not None and self.kf is not None
+                and self._plausible(r)):
             r = self._unrolled_again(image, camera, fr, r, readout)
         if not self._good(r) and self.T_last is None and self.recent is not None:
             # re-acquire near the last good pose: a blurred or featureless frame or two should not cost a database query
