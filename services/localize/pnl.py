@@ -68,7 +68,7 @@ import numpy as np
 from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hamming, level_centres
 from services.geometry.blur import blur_length_px
 from services.geometry.camera import Camera
-from services.geometry.rolling_shutter import angular_velocity, unroll
+from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, rate_changed, unroll_moving
 from services.geometry.se3 import Pose
 from services.localize.carry import OdometryCarry
 from services.localize.odometry_check import OdometryCheck
@@ -338,7 +338,7 @@ class PnlLocalizer:
         self._local_rows = np.zeros(0, np.int64)
         self._local_P = np.zeros((0, 3))
         self.relocalizations = 0
-        self._rs_run = 0  # frames in a row whose rolling shutter was undone (see process)
+        self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
         log.info("P&L localizer: %d keyframes, %d landmarks indexed in %.2f s", stella_map.n_keyframes,
                  stella_map.n_landmarks, time.perf_counter() - t0)
 
@@ -367,6 +367,7 @@ class PnlLocalizer:
         new.relocalizations = 0
         new.odometry = OdometryCheck()
         new.carry = OdometryCarry(self.cfg.odometry_carry_s)  # its own: reset() only clears it
+        new.shutter = ShutterTrack()
         new._stamp = None
         new.reset()
         return new
@@ -376,7 +377,7 @@ class PnlLocalizer:
         """Forget the pose: the next frame relocalizes."""
         self.T_last = None
         self._vel = None
-        self._rs_run = 0
+        self.shutter.reset()
         self.carry.reset()
 
     def seed(self, T_wc: Pose) -> None:
@@ -714,7 +715,7 @@ class PnlLocalizer:
         return float(np.median(z)) if len(z) else None
 
     def _unrolled_again(self, image: np.ndarray, camera: Camera, fr: _Frame, r, move: Pose, dt: float, readout: float,
-                        tm: dict):
+                        depth: float | None, tm: dict):
         """A rolling-shutter frame unrolled with the motion model's last motion, tracked to ``r``: when the motion
         from the last pose to ``r`` turns at a rate that would move the frame's edge rows by over half a pixel more,
         it is unrolled again with that motion and aligned from ``r``. The motion model lags a pan that speeds up:
@@ -722,11 +723,10 @@ class PnlLocalizer:
         0.119 -> 0.092 deg. Returns (result, frame), the second round's when it holds."""
         T_wc = Pose(r[0].T, -r[0].T @ r[1])
         D = self.T_last.inverse() @ T_wc
-        w_then, w_now = angular_velocity(move.R, dt), angular_velocity(D.R, dt)
-        if np.linalg.norm(w_now - w_then) * readout / 2 * max(camera.fx, camera.fy) <= 0.5:
+        if not rate_changed(move, dt, D, dt, camera, readout):
             return r, fr
         fr2 = self._frame(image, camera)
-        fr2.image = unroll(image, camera, w_now, readout, velocity=D.t / dt, depth_m=self._scene_depth(self.T_last))
+        fr2.image = unroll_moving(image, camera, D, dt, readout, depth)
         r2 = self._direct_retry(fr2, T_wc, tm)
         return (r2, fr2) if self._plausible(r2) else (r, fr)
 
@@ -918,12 +918,10 @@ class PnlLocalizer:
         move = motion if motion is not None else (self._vel if self.cfg.use_velocity else None)
         readout = self.cfg.readout_s if readout_s is None else float(readout_s)  # (per frame: the service's clients)
         unrolled = readout > 0 and prior is None and self.T_last is not None and move is not None
+        depth = self._scene_depth(self.T_last) if unrolled else None
         if unrolled:  # rows read while the camera moved: re-sampled into the middle row's view first
-            fr.image = unroll(fr.image, camera, angular_velocity(move.R, dt), readout, velocity=move.t / dt,
-                              depth_m=self._scene_depth(self.T_last))
-        # reported only once the motion comes from frames unrolled too, or from the device (as Render & Match)
-        rs_settled = readout <= 0 or (unrolled and (motion is not None or self._rs_run >= 2))
-        self._rs_run = self._rs_run + 1 if unrolled else 0
+            fr.image = unroll_moving(fr.image, camera, move, dt, readout, depth)
+        rs_settled = self.shutter.step(readout, unrolled, motion is not None)
         pred = prior
         if pred is None and self.T_last is not None:
             pred = self.T_last
@@ -948,7 +946,7 @@ class PnlLocalizer:
             if prior is None and not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
                 r = self._track(fr, self.T_last, 2 * self.cfg.coarse_radius_px, tm)
         if unrolled and motion is None and self._plausible(r) and self.patches is not None:
-            r, fr = self._unrolled_again(image, camera, fr, r, move, dt, readout, tm)
+            r, fr = self._unrolled_again(image, camera, fr, r, move, dt, readout, depth, tm)
         if not self._plausible(r):
             r = self._relocalize(fr, tm)
             if self._good(r, fr):
@@ -977,7 +975,6 @@ class PnlLocalizer:
             self.T_last = T_wc
             return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg,
                              f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)"
-                             if not self._good(r, fr) else "rolling shutter not undone yet (the motion is measured over "
-                             "the next frames)")
+                             if not self._good(r, fr) else NOT_UNDONE)
         self.T_last = T_wc
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)

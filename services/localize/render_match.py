@@ -62,7 +62,7 @@ from services.features.xfeat import Features, XFeatExtractor
 from services.geometry.blur import blur_length_px, motion_blur_linear
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
-from services.geometry.rolling_shutter import angular_velocity, unroll
+from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, rate_changed, unroll_moving
 from services.geometry.se3 import Pose
 from services.localize.carry import OdometryCarry
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
@@ -307,7 +307,7 @@ class RenderMatchTracker:
         #                                                                   camera's world velocity then (if tracked)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.lost_frames = 0
-        self.rs_run = 0  # frames in a row whose rolling shutter was undone (see process)
+        self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
         self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried through LOST frames by the odometry
         self.odometry = OdometryCheck()  # whether the device's odometry agrees with the tracked motion (else unused)
 
@@ -599,13 +599,11 @@ class RenderMatchTracker:
         the last pose to ``r`` turns at a rate that would move the frame's edge rows by over half a pixel more, the
         frame is unrolled again with it (``fr.image``) and aligned from ``r`` directly (as P&L does: the motion model
         lags a pan that speeds up). Returns that pose when it is good, else ``r``."""
-        D_then, dt = fr.motion
         D = self.T_last.inverse() @ r.T_wc
-        w_then, w_now = angular_velocity(D_then.R, dt), angular_velocity(D.R, fr.dt_next)
-        if np.linalg.norm(w_now - w_then) * readout / 2 * max(camera.fx, camera.fy) <= 0.5:
+        if not rate_changed(*fr.motion, D, fr.dt_next, camera, readout):
             return r
-        redo = dataclasses.replace(fr, image=unroll(image, camera, w_now, readout, velocity=D.t / max(fr.dt_next, 1e-6),
-                                                    depth_m=self._scene_depth()), live={}, gray={})
+        redo = dataclasses.replace(fr, image=unroll_moving(image, camera, D, fr.dt_next, readout, self._scene_depth()),
+                                   live={}, gray={})
         r2 = self._direct(self.kf, redo, r.T_wc)
         if not self._good(r2) or self._far(r2.T_wc, self.kf):
             return r
@@ -903,14 +901,8 @@ class RenderMatchTracker:
         readout = self.cfg.readout_s if readout_s is None else float(readout_s)
         unrolled = readout > 0 and fr.motion is not None
         if unrolled:  # rows read while the camera moved: undo that first
-            D, dt = fr.motion
-            fr.image = unroll(image, camera, angular_velocity(D.R, dt), readout, velocity=D.t / max(dt, 1e-6),
-                              depth_m=self._scene_depth())
-        # a rolling shutter is undone only once the motion comes from frames it was undone on (or from the device's
-        # odometry): a cold frame turning at 90 deg/s was relocalized 12.6 cm / 1.5 deg off, and the motion from it
-        # skews the next frames' unrolling (tests/test_pnl.py, the same for both localizers)
-        rs_settled = readout <= 0 or (unrolled and (motion is not None or self.rs_run >= 2))
-        self.rs_run = self.rs_run + 1 if unrolled else 0
+            fr.image = unroll_moving(image, camera, *fr.motion, readout, self._scene_depth())
+        rs_settled = self.shutter.step(readout, unrolled, motion is not None)
         status = Status.TRACKING
         r: PnpResult | None = None
         rerendered = False
@@ -1045,7 +1037,6 @@ class RenderMatchTracker:
         reason = None
         if not good:
             reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg 1-sigma)"
-                      if not self._good(r) else "rolling shutter not undone yet (the motion is measured over the next "
-                      "frames)" if not rs_settled else "pose away from where the motion leads")
+                      if not self._good(r) else NOT_UNDONE if not rs_settled else "pose away from where the motion leads")
         return FrameResult(status if good else Status.LOST, r.T_wc if good else None, r.n_inliers, r.reproj_rmse_px,
                            rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, self._blur_px(fr, self._exposure(fr)), reason)

@@ -161,17 +161,16 @@ class SceneRenderer:
         rays_c = _pixel_rays(camera).reshape(H, W, 3)
         R = np.stack([T.R for T in row_poses])  # (H, 3, 3)
         dirs = np.einsum("hwj,hij->hwi", rays_c, R).reshape(-1, 3)
-        origins = np.repeat(np.stack([T.t for T in row_poses]), W, axis=0)
-        rad, t, _ = self.cast(origins, dirs, lighting, 1.0 / max(camera.fx, camera.fy))
-        depth = np.where(np.isfinite(t), t, 0.0)
-        return rad.reshape(H, W, 3).astype(np.float32), depth.reshape(H, W).astype(np.float32)
+        return self._image(np.repeat(np.stack([T.t for T in row_poses]), W, axis=0), dirs, camera, lighting)
 
     def render(self, T_wc: Pose, camera: Camera, lighting: Lighting) -> tuple[np.ndarray, np.ndarray]:
         """(H,W,3) float32 linear radiance and (H,W) float32 z-depth (0 where nothing is hit) for ``T_wc``."""
-        rays_c = _pixel_rays(camera)  # z = 1, so t along them is the z-depth
-        dirs = rays_c @ T_wc.R.T
-        spread = 1.0 / max(camera.fx, camera.fy)
-        rad, t, _ = self.cast(T_wc.t, dirs, lighting, spread)
+        return self._image(T_wc.t, _pixel_rays(camera) @ T_wc.R.T, camera, lighting)
+
+    def _image(self, origins: np.ndarray, dirs: np.ndarray, camera: Camera, lighting: Lighting) -> tuple[np.ndarray, np.ndarray]:
+        """Radiance and z-depth images of one ray per pixel (``dirs`` rotated from pixel rays with z = 1, so the
+        distance along them is the z-depth)."""
+        rad, t, _ = self.cast(origins, dirs, lighting, 1.0 / max(camera.fx, camera.fy))
         depth = np.where(np.isfinite(t), t, 0.0)
         H, W = camera.height, camera.width
         return rad.reshape(H, W, 3).astype(np.float32), depth.reshape(H, W).astype(np.float32)
