@@ -470,3 +470,54 @@ def test_a_rolling_shutter_frame_is_unrolled_before_tracking(pnl_site, pnl_map):
     settled = np.array([e for _, e in got[0.030]])
     rmse = np.sqrt((settled ** 2).mean(axis=0))
     assert rmse[0] < 0.015 and rmse[1] < 0.2, rmse
+
+
+def _dim(image: np.ndarray, seed: int) -> np.ndarray:
+    """A dim room at a fixed short exposure (benchmarks/photometric.py's "dark"): a third of the light, gamma 1.3, read
+    noise, JPEG."""
+    import cv2
+
+    x = 0.3 * (image.astype(np.float32) / 255.0) ** 1.3 + np.random.default_rng(seed).normal(0, 0.015, image.shape)
+    ok, jpg = cv2.imencode(".jpg", np.clip(255 * x, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    return cv2.imdecode(jpg, cv2.IMREAD_COLOR)
+
+
+def test_dim_frames_are_tracked_and_relocalized(pnl_site, pnl_map):
+    """A dark frame's corners fall under ORB's grey-level thresholds, and its noise and JPEG blocks pull the alignment's
+    windows: a cold frame no place fits is relocalized again with its grey levels stretched, and a frame this noisy
+    for its contrast is smoothed before patches are aligned to it (``PnlConfig.reloc_stretch_*``, ``denoise_above``).
+    On the 8 test frames made dim: 5 cold frames relocalized without either, 6-7 with one, 8 with both.
+    (benchmarks/photometric.py: the office walk at a third of the light, 84 -> 150 of 150 frames.)"""
+    import cv2
+
+    from services.io.sequence import open_sequence
+    from services.localize.direct import noise_ratio
+    from services.localize.pnl import PnlConfig, PnlLocalizer
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    clean = [seq.read(i).image for i in range(len(seq))]
+    frames = [(_dim(im, i), seq.groundtruth_pose(seq.read(i).stamp)) for i, im in enumerate(clean)]
+    cfg = PnlConfig()
+    assert all(noise_ratio(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY)) < cfg.denoise_above for im in clean)
+    assert all(noise_ratio(cv2.cvtColor(im, cv2.COLOR_BGR2GRAY)) > cfg.denoise_above for im, _ in frames)
+
+    def cold(cfg: PnlConfig) -> list:
+        loc = PnlLocalizer.load(pnl_map[0], cfg)
+        errors = []
+        for im, g in frames:
+            loc.reset()
+            r = loc.process(im, cam)
+            if r.T_wc is not None:
+                errors.append(g.distance_to(r.T_wc))
+        return errors
+
+    found = cold(cfg)
+    assert len(found) == len(frames) and all(dt < 0.015 and dr < 0.2 for dt, dr in found), found
+    assert len(cold(PnlConfig(reloc_stretch_below=0.0, denoise_above=float("inf")))) <= 5
+    loc = PnlLocalizer.load(pnl_map[0], cfg)
+    for i, (im, g) in enumerate(frames):
+        r = loc.process(im, cam, prior=g if i == 0 else None)
+        assert r.T_wc is not None, (i, r.reason)
+        dt, dr = g.distance_to(r.T_wc)
+        assert dt < 0.01 and dr < 0.15, (i, dt, dr)

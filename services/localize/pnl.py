@@ -59,7 +59,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -108,6 +108,11 @@ class PnlConfig:
     #                                      matches voted for, then checked against every landmark): people in front of
     #                                      the camera may hold the strongest
     reloc_max_hamming: int = 64
+    reloc_stretch_below: float = 133.0  # a frame no place fits whose grey levels span less than this (0.5-99.5 %) is
+    reloc_stretch_range: float = 200.0  # ... tried again with them stretched to span this (at most 4x): FAST's thresholds
+    #                                     and the descriptors' smoothing count grey levels, and a dark frame's corners fall
+    #                                     under them (office walk at a third of the light, benchmarks/photometric.py: tracking
+    #                                     slipped at frame 88 and no place fitted again, 88/150; stretched, 149/150). Clean walks' frames span 130-250
     reloc_keyframes: int = 4  # best-voted keyframes tried
     reloc_ransac_px: float = 4.0
     reloc_min_inliers: int = 15
@@ -143,6 +148,8 @@ class PnlConfig:
     align_passes: int = 3  # alignment and pose solve alternate until the pose moves less than half its sigma, at most this often
     align_sigma_px: float = 0.5  # a corner patch's alignment noise (1 sigma, px; measured 0.2-0.3 px at the true pose)
     align_rmse_floor: float = 1.0  # the aligned solution's covariance assumes at least align_sigma_px of noise (whitened RMSE floor)
+    denoise_above: float = 0.06  # a frame noisier than this (noise / grey-level spread, direct.noise_ratio) is smoothed
+    #                              before patches are aligned to it: dark or high-ISO frames (inf: never)
 
 
 @dataclass
@@ -440,7 +447,7 @@ class PnlLocalizer:
         grid = -np.ones((gw * gh, cap), np.int64)
         grid[cs[keep], rank[keep]] = order[keep]
         fr.feats, fr.uv, fr.grid, fr.gw, fr.gh, fr.inv_sigma2 = f, uv, grid, gw, gh, self._inv_s2[f.octaves]
-        tm["features_ms"] = 1e3 * (time.perf_counter() - t0)
+        tm["features_ms"] = tm.get("features_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         return fr
 
     # ---- local map -----------------------------------------------------------------------
@@ -733,7 +740,7 @@ class PnlLocalizer:
     def _gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey (float32), undistorted like its keypoints; computed once per frame."""
         if fr.gray is None:
-            fr.gray = undistorted_gray(fr.image, fr.camera, self._undistort)
+            fr.gray = undistorted_gray(fr.image, fr.camera, self._undistort, self.cfg.denoise_above)
         return fr.gray
 
     def _plausible(self, r) -> bool:
@@ -848,7 +855,7 @@ class PnlLocalizer:
                 results = self._places(fr, q, lm, votes)
             if results and max(n for n, _ in results) >= cfg.reloc_min_inliers:
                 break
-        tm["relocalize_ms"] = 1e3 * (time.perf_counter() - t0)
+        tm["relocalize_ms"] = tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)  # (twice when stretched)
         if len(q) < cfg.reloc_min_inliers:
             fr.reason = (f"no place in the map fits the frame: {len(q)} descriptor matches pass the ratio test, "
                          f"a place needs {cfg.reloc_min_inliers}")
@@ -897,6 +904,18 @@ class PnlLocalizer:
         if not self._plausible(r):
             fr.reason = f"no place in the map was confirmed: the best ({n_best} PnP inliers) did not track from its coarse pose"
         return r
+
+    def _stretched(self, fr: _Frame) -> _Frame | None:
+        """The frame for a second relocalization with its grey levels stretched (``reloc_stretch_*``), or None when they
+        already span enough. Only ORB sees it: patch alignment is normalised per window."""
+        cfg = self.cfg
+        g = fr.image if fr.image.ndim == 2 else cv2.cvtColor(fr.image, cv2.COLOR_BGR2GRAY)
+        lo, hi = np.percentile(g, (0.5, 99.5))
+        if hi - lo >= cfg.reloc_stretch_below:
+            return None
+        gain = min(4.0, cfg.reloc_stretch_range / max(float(hi - lo), 1.0))
+        img = np.clip((g.astype(np.float32) - float(lo)) * gain + 0.5, 0, 255).astype(np.uint8)
+        return replace(fr, image=img, feats=None, uv=None, grid=None, inv_sigma2=None, reason=None)
 
     # ---- the frame loop ---------------------------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, motion: Pose | None = None,
@@ -949,6 +968,9 @@ class PnlLocalizer:
             r, fr = self._unrolled_again(image, camera, fr, r, move, dt, readout, depth, tm)
         if not self._plausible(r):
             r = self._relocalize(fr, tm)
+            if not self._plausible(r) and (dim := self._stretched(fr)) is not None:
+                r = self._relocalize(dim, tm)
+                fr.reason = dim.reason and f"{dim.reason} (grey levels stretched)"
             if self._good(r, fr):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1

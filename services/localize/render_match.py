@@ -156,6 +156,10 @@ class RMConfig:
     #                              150 it slid 1-5 cm over 4 frames at a predicted 0.6 cm, office seed 2)
     match_sigma_scale: float = 1.0  # XFeat poses' covariance x this^2: against ground truth their errors run ~2 sigma (direct
     #                                 poses' ~1); 2 halves the RMSE on office seeds 2-3 but reports a quarter fewer frames
+    denoise_above: float = float("inf")  # smooth a frame noisier than this (direct.noise_ratio) before the render's patches
+    #                              are aligned to it, as P&L does at 0.06. Off: XFeat takes over where the alignment fails,
+    #                              and at 0.06 six dark and high-ISO copies of the office walk gave 880 frames instead of
+    #                              877 of 900 but the high-ISO ones 0.48-0.54 cm instead of 0.42-0.44 (benchmarks/photometric.py)
     direct_blur_power: float = 1.0  # a direct pose's covariance grows as (blur / blur_sigma_px)^this (XFeat's: ^2)
     direct_min_corner: float = 0.2  # those patches' corner score (0 edge or flat .. 0.5 isotropic corner)
     direct_corner_quality: tuple[float, ...] = (0.005, 0.002)  # corner strength, relative to the render's strongest, for
@@ -558,7 +562,7 @@ class RenderMatchTracker:
     def _undistorted_gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey at full resolution, undistorted (float32), once per frame."""
         if "undistorted" not in fr.gray:
-            fr.gray["undistorted"] = undistorted_gray(fr.image, fr.camera, self._undistort)
+            fr.gray["undistorted"] = undistorted_gray(fr.image, fr.camera, self._undistort, self.cfg.denoise_above)
         return fr.gray["undistorted"]
 
     def _direct(self, kf: Keyframe, fr: _Frame, T_pred: Pose) -> PnpResult | None:
