@@ -77,6 +77,26 @@ def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
     assert r.returncode == 0 and "direct_ms" not in s and s["localized"] >= 7, r.stdout + r.stderr
 
 
+def test_localize_goes_on_past_broken_frames(pnl_site, pnl_map, tmp_path):
+    """A recording with a missing and a truncated image: `cristal localize` gives every other frame its pose, counts
+    the two as LOST ("unreadable image") and writes the trajectory, also with the backward pass."""
+    import json
+    import shutil
+
+    root, out, cam, box = pnl_site
+    seq_dir = tmp_path / "seq"
+    shutil.copytree(out / "seq", seq_dir)
+    files = sorted((seq_dir / "rgb").iterdir())
+    files[2].unlink()
+    files[5].write_bytes(files[5].read_bytes()[:500])
+    traj_path = tmp_path / "traj.txt"
+    r = _cli("localize", pnl_map[0], seq_dir, "--method", "pnl", "--map", pnl_map[0], "--out", traj_path, "--backfill")
+    assert r.returncode == 0, r.stdout + r.stderr
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert s["frames"] == 8 and s["lost_reasons"].get("unreadable image") == 2, s
+    assert s["localized"] == 6 and traj_path.read_text().count("\n") >= 6, s
+
+
 def test_localize_pnl_without_map_is_a_clear_error(tmp_path):
     r = _cli("localize", tmp_path, tmp_path, "--method", "pnl", "--out", tmp_path / "t.txt")
     assert r.returncode == 2 and "--map" in r.stdout + r.stderr

@@ -82,6 +82,37 @@ def test_sequence_errors_name_the_problem(tmp_path):
         open_sequence(d).read(0)
 
 
+def test_a_recording_with_broken_frames_is_read_past_them(tmp_path):
+    """A recorder that dropped a write or truncated a file: the sequence still opens (with a warning), strict reading
+    names the frame, tolerant iteration hands out every other frame and says what is wrong with the broken ones. A
+    frame of another size than camera.json's is a wrong camera, not a broken file: it still ends the iteration."""
+    with SequenceWriter(tmp_path / "seq", CAM, ".png") as w:
+        for i, img in enumerate(_frames(5)):
+            w.add(f"{i}.0", img)
+    seq_dir = tmp_path / "seq"
+    files = sorted((seq_dir / "rgb").iterdir())
+    files[1].unlink()
+    files[3].write_bytes(files[3].read_bytes()[:20])  # truncated
+    seq = open_sequence(seq_dir)
+    assert len(seq) == 5
+    with pytest.raises(SequenceError, match="missing"):
+        list(seq)  # strict: the first broken frame ends it
+    with pytest.raises(SequenceError, match="cannot decode"):
+        seq.read(3)
+    frames = list(seq.frames(tolerant=True))
+    assert [f.stamp for f in frames] == ["0.0", "1.0", "2.0", "3.0", "4.0"]
+    assert [f.image is None for f in frames] == [False, True, False, True, False]
+    assert "missing" in frames[1].problem and "cannot decode" in frames[3].problem and frames[0].problem is None
+    np.testing.assert_array_equal(frames[4].image, _frames(5)[4])
+    cv2.imwrite(str(files[2]), np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(SequenceError, match="camera.json says 64x48"):
+        list(seq.frames(tolerant=True))
+    for f in files:
+        f.unlink(missing_ok=True)
+    with pytest.raises(SequenceError, match="all 5 image"):
+        open_sequence(seq_dir)
+
+
 def test_video_input(tmp_path):
     path = tmp_path / "walk.avi"
     vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))

@@ -71,11 +71,13 @@ class _Seq:
     def __len__(self):
         return len(self.idx)
 
-    def __iter__(self):
+    def frames(self, tolerant=False):
         from services.io.sequence import Frame
 
         for k, i in enumerate(self.idx):
             yield Frame(self.stamps[k], self.base.read(i).image)
+
+    __iter__ = frames
 
 
 def test_failover_between_two_workers(small_site, small_site_db, router):

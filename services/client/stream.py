@@ -81,7 +81,9 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
                     frames: int | None = None, fps: float = 0.0, deadline_ms: float | None = None,
                     on_frame=None, odometry: Trajectory | None = None,
                     readout_s: float | None = None) -> tuple[Trajectory, StreamStats]:
-    """Stream ``seq`` and write the trajectory + sources; ``fps`` > 0 paces frames at that rate. ``odometry``: the
+    """Stream ``seq`` (a services.io.sequence.Sequence, or anything with its ``camera``, ``stamps``, ``len`` and
+    ``frames(tolerant=True)``) and write the trajectory + sources; a frame whose file is missing or broken gets no pose
+    and the stream goes on. ``fps`` > 0 paces frames at that rate. ``odometry``: the
     device's own trajectory (any frame of its own): each frame is sent with its motion since the previous one.
     ``readout_s``: the camera's rolling-shutter readout (server and local fallback undo it; None: global shutter)."""
     from services.log import progress
@@ -92,9 +94,14 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
     t_start = time.perf_counter()
     period = 1.0 / fps if fps and fps > 0 else 0.0
     motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else [None] * n
-    for i, frame in enumerate(progress(seq, desc="streaming", total=n, unit="frame")):
+    for i, frame in enumerate(progress(seq.frames(tolerant=True), desc="streaming", total=n, unit="frame")):
         if i >= n:
             break
+        if frame.image is None:  # a missing or broken file (logged): no pose for it, the stream goes on
+            st.frames += 1
+            st.none += 1
+            st.rows.append((frame.stamp, "-", "unreadable", "-", float("nan")))
+            continue
         if period:
             wait = t_start + i * period - time.perf_counter()
             if wait > 0:

@@ -14,6 +14,7 @@ container's presentation times in seconds, written with 6 decimals. It needs a
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -28,6 +29,8 @@ from services.io.trajectory import Trajectory, read_tum, write_tum
 
 __all__ = ["Frame", "Sequence", "SequenceError", "SequenceWriter", "open_sequence", "VIDEO_SUFFIXES"]
 
+log = logging.getLogger(__name__)
+
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v"}
 
 
@@ -38,7 +41,8 @@ class SequenceError(ValueError):
 @dataclass(frozen=True)
 class Frame:
     stamp: str  # exact timestamp text from rgb.txt
-    image: np.ndarray  # HxWx3 uint8, BGR (OpenCV order)
+    image: np.ndarray | None  # HxWx3 uint8, BGR (OpenCV order); None only with ``problem``
+    problem: str | None = None  # why the image could not be read (``Sequence.frames(tolerant=True)`` only)
 
 
 class Sequence:
@@ -64,6 +68,8 @@ class Sequence:
         if self.files is None:
             raise SequenceError("random access is not supported for video; iterate instead")
         path = self.files[i]
+        if not path.exists():
+            raise SequenceError(f"{path}: missing")
         img = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if img is None:
             raise SequenceError(f"{path}: cannot decode image")
@@ -73,9 +79,21 @@ class Sequence:
         return Frame(self.stamps[i], img)
 
     def __iter__(self) -> Iterator[Frame]:
+        return self.frames()
+
+    def frames(self, tolerant: bool = False) -> Iterator[Frame]:
+        """The frames in order. ``tolerant``: an image file that is missing or cannot be decoded (a recorder's dropped
+        or truncated write) comes as a Frame with no image and its ``problem``, logged, instead of ending the
+        iteration with a SequenceError; a frame of another size than camera.json's still raises."""
         if self.video is None:
             for i in range(len(self)):
-                yield self.read(i)
+                try:
+                    yield self.read(i)
+                except SequenceError as e:
+                    if not tolerant or "camera.json says" in str(e):
+                        raise
+                    log.warning("frame %s skipped: %s", self.stamps[i], e)
+                    yield Frame(self.stamps[i], None, str(e))
             return
         cap = cv2.VideoCapture(str(self.video))
         try:
@@ -146,8 +164,11 @@ def open_sequence(source: str | Path, camera: Camera | None = None) -> Sequence:
     entries = _read_rgb_txt(src / "rgb.txt")
     files = [src / rel for _, rel in entries]
     missing = [f for f in files if not f.exists()]
-    if missing:
-        raise SequenceError(f"{src}: {len(missing)} image(s) listed in rgb.txt are missing, e.g. {missing[0]}")
+    if len(missing) == len(files):
+        raise SequenceError(f"{src}: all {len(missing)} image(s) listed in rgb.txt are missing, e.g. {missing[0]}")
+    if missing:  # a recorder that dropped a few writes: the rest is worth localizing (Sequence.frames(tolerant=True))
+        log.warning("%s: %d of %d image(s) listed in rgb.txt are missing, e.g. %s", src, len(missing), len(files),
+                    missing[0])
     gt_path = src / "groundtruth.txt"
     gt = read_tum(gt_path) if gt_path.exists() else None
     return Sequence(src, cam, [s for s, _ in entries], files, gt)

@@ -25,7 +25,7 @@ class BackfillStats:
     rejected: int = 0  # frames dropped because their stretch's backward track missed the forward pose before it
 
 
-def backfill(loc, frame: Callable[[int], np.ndarray], camera, poses: list[Pose | None], stamps: list[float | None],
+def backfill(loc, frame: Callable[[int], np.ndarray | None], camera, poses: list[Pose | None], stamps: list[float | None],
              motions: list[Pose | None] | None = None, give_up_s: float = 1.0, meet_m: float = 0.03,
              meet_deg: float = 0.3, progress: Callable[[int], None] | None = None,
              stats: BackfillStats | None = None) -> BackfillStats:
@@ -35,8 +35,8 @@ def backfill(loc, frame: Callable[[int], np.ndarray], camera, poses: list[Pose |
     P&L); ``frame(i)``: frame i's image; ``stamps``: capture times in seconds (None: unknown; frames are then taken
     1/30 s apart), fed negated so that time runs forward for the localizer; ``motions``: the device's odometry,
     ``T_{i-1}^-1 @ T_i`` per frame, inverted for the backward step. A backward track stops at a frame with a forward
-    pose or after ``give_up_s`` of LOST frames. ``progress(k)``: called with the number of frames processed.
-    ``stats``: counted into (returned either way)."""
+    pose or after ``give_up_s`` of LOST frames; a frame whose image is None (unreadable) counts as LOST.
+    ``progress(k)``: called with the number of frames processed. ``stats``: counted into (returned either way)."""
     st = stats if stats is not None else BackfillStats()
     n = len(poses)
     times = [s if s is not None else i / 30.0 for i, s in enumerate(stamps)]
@@ -58,14 +58,15 @@ def backfill(loc, frame: Callable[[int], np.ndarray], camera, poses: list[Pose |
             if j < 0:
                 break
             motion = motions[j + 1].inverse() if motions is not None and motions[j + 1] is not None else None
-            r = loc.process(frame(j), camera, stamp=-times[j], motion=motion)
+            img = frame(j)
+            T = None if img is None else loc.process(img, camera, stamp=-times[j], motion=motion).T_wc
             if progress is not None:
                 progress(1)
             if j == a - 1:
-                meets = r.T_wc
+                meets = T
                 break
-            if r.T_wc is not None:
-                got[j], lost_since = r.T_wc, None
+            if T is not None:
+                got[j], lost_since = T, None
             elif lost_since is None:
                 lost_since = times[j]
             elif lost_since - times[j] > give_up_s:

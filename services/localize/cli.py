@@ -152,9 +152,11 @@ def run_calibrate(args) -> int:
     def track(camera):
         tr = RenderMatchTracker(renderer, ext, db, RMConfig())
         k = 0
-        for i, f in enumerate(progress(seq, "calibrating", total=n, unit="frame")):
+        for i, f in enumerate(progress(seq.frames(tolerant=True), "calibrating", total=n, unit="frame")):
             if i >= n:
                 break
+            if f.image is None:  # missing or broken file (logged)
+                continue
             r = tr.process(f.image, camera, stamp=_seconds(f.stamp))
             if r.T_wc is not None:
                 k += 1

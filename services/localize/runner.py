@@ -47,9 +47,15 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     kept: dict[int, bytes] = {}  # a video's frames the backward pass needs (LOST ones and those around them), as PNG
     prev = None
     t0 = time.perf_counter()
-    for i, frame in enumerate(progress(seq, desc=progress_desc, total=n, unit="frame")):
+    unreadable: set[int] = set()  # frames whose image is missing or broken: LOST, and the run goes on
+    for i, frame in enumerate(progress(seq.frames(tolerant=True), desc=progress_desc, total=n, unit="frame")):
         if i >= n:
             break
+        if frame.image is None:
+            counts[Status.LOST] += 1
+            why["unreadable image"] = why.get("unreadable image", 0) + 1
+            unreadable.add(i)
+            continue
         r = loc.process(frame.image, seq.camera, stamp=stamps[i], motion=None if motions is None else motions[i])
         counts[r.status] += 1
         reason = getattr(r, "reason", None) if r.status == Status.LOST else None
@@ -68,6 +74,8 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
         from services.localize.backfill import backfill as backward
 
         def image(i: int):
+            if i in unreadable:
+                return None
             return seq.read(i).image if seq.files is not None else cv2.imdecode(np.frombuffer(kept[i], np.uint8),
                                                                                  cv2.IMREAD_COLOR)
 
