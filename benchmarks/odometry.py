@@ -57,7 +57,7 @@ def main() -> None:
         for name, o in (("images only", None), ("+ odometry", odo)):
             tr = RenderMatchTracker(renderer, _tracking_extractor(renderer), db)
             t0 = time.perf_counter()
-            traj, counts, _, dt, why = localize_sequence(tr, seq, n, progress_desc=f"{site.name} {name}", stamped=True,
+            traj, counts, _, dt, why, _ = localize_sequence(tr, seq, n, progress_desc=f"{site.name} {name}", stamped=True,
                                                          odometry=o)
             _, ape = ape_first_frames(seq.groundtruth, traj, n)
             gt = seq.groundtruth.as_dict()

@@ -44,7 +44,7 @@ def run(scan, seq, stage: str, frames: int, max_side: int, top_k: int, spacing: 
     db = build_database(renderer, sample_positions(scan, RoiConfig(spacing=spacing)), ext)
     db_s = time.perf_counter() - t0
     tracker = RenderMatchTracker(renderer, ext, db, cfg)
-    traj, counts, stage_ms, wall, _ = localize_sequence(tracker, seq, frames, stamped=True)
+    traj, counts, stage_ms, wall, _, _ = localize_sequence(tracker, seq, frames, stamped=True)
     gt = seq.groundtruth
     a = compute_ape(Trajectory(gt.stamps[:frames], gt.poses[:frames]), traj, "none") if len(traj) else None
     return {"localized": len(traj), "frames": frames, "reloc": counts[Status.RELOCALIZED], "fps": frames / wall,

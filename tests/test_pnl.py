@@ -97,6 +97,38 @@ def test_localize_goes_on_past_broken_frames(pnl_site, pnl_map, tmp_path):
     assert s["localized"] == 6 and traj_path.read_text().count("\n") >= 6, s
 
 
+def test_ctrl_c_keeps_the_frames_localized_so_far(pnl_site, pnl_map, tmp_path, capsys):
+    """Ctrl-C in a long `cristal localize`: the trajectory of the frames done is written, the summary says so, and the
+    exit status is 130 (the interrupt arrives inside the localizer, as it would)."""
+    import argparse
+    import json
+
+    from services.io.sequence import open_sequence
+    from services.io.trajectory import read_tum
+    from services.localize.pnl import PnlLocalizer
+    from services.localize.runner import localize_and_report
+
+    class CtrlCAt:
+        def __init__(self, loc, k):
+            self.loc, self.k, self.calls = loc, k, 0
+
+        def process(self, *a, **kw):
+            self.calls += 1
+            if self.calls == self.k:
+                raise KeyboardInterrupt
+            return self.loc.process(*a, **kw)
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    traj_path = tmp_path / "t.txt"
+    args = argparse.Namespace(frames=None, out=str(traj_path), backfill=True)
+    code = localize_and_report(CtrlCAt(PnlLocalizer.load(pnl_map[0]), 6), seq, args, "pnl")
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 130 and s["interrupted"] and s["frames"] == 5, s
+    got = read_tum(traj_path)
+    assert 4 <= len(got) <= 5 and set(got.stamps) <= set(seq.stamps[:5])
+
+
 def test_localize_pnl_without_map_is_a_clear_error(tmp_path):
     r = _cli("localize", tmp_path, tmp_path, "--method", "pnl", "--out", tmp_path / "t.txt")
     assert r.returncode == 2 and "--map" in r.stdout + r.stderr

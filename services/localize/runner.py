@@ -3,9 +3,12 @@ write the TUM trajectory, print frames / FPS / per-stage times and APE, end with
 
 from __future__ import annotations
 
+import logging
 import time
 
 __all__ = ["localize_sequence", "localize_and_report"]
+
+log = logging.getLogger(__name__)
 
 
 def _seconds(stamp: str) -> float | None:
@@ -28,7 +31,8 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     (services.io.trajectory.Trajectory, any world frame), passed as each frame's ``motion`` since the previous
     frame where both have one; ``backfill``: a services.localize.backfill.BackfillStats to run the offline backward
     pass and count into). Returns (trajectory, status counts of the forward pass, mean ms per stage of the forward
-    pass, seconds of both passes, LOST frames per reason in the forward pass)."""
+    pass, seconds of both passes, LOST frames per reason in the forward pass, interrupted): Ctrl-C ends the pass
+    early and keeps the frames localized so far (no backward pass then)."""
     import cv2
     import numpy as np
 
@@ -48,28 +52,38 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     prev = None
     t0 = time.perf_counter()
     unreadable: set[int] = set()  # frames whose image is missing or broken: LOST, and the run goes on
-    for i, frame in enumerate(progress(seq.frames(tolerant=True), desc=progress_desc, total=n, unit="frame")):
-        if i >= n:
-            break
-        if frame.image is None:
-            counts[Status.LOST] += 1
-            why["unreadable image"] = why.get("unreadable image", 0) + 1
-            unreadable.add(i)
-            continue
-        r = loc.process(frame.image, seq.camera, stamp=stamps[i], motion=None if motions is None else motions[i])
-        counts[r.status] += 1
-        reason = getattr(r, "reason", None) if r.status == Status.LOST else None
-        if reason:
-            why[reason_kind(reason)] = why.get(reason_kind(reason), 0) + 1
-        for k, v in r.timings.items():
-            stage[k] = stage.get(k, 0.0) + v / n
-        poses[i] = r.T_wc
-        if backfill is not None and seq.files is None:  # a video: no going back to its frames
-            if i > 0 and (poses[i] is None) != (poses[i - 1] is None) and i - 1 not in kept:
-                kept[i - 1] = _png(prev)
-            if poses[i] is None or (i > 0 and poses[i - 1] is None):
-                kept[i] = _png(frame.image)
-            prev = frame.image
+    done, interrupted = 0, False
+    try:
+        for i, frame in enumerate(progress(seq.frames(tolerant=True), desc=progress_desc, total=n, unit="frame")):
+            if i >= n:
+                break
+            done = i + 1
+            if frame.image is None:
+                counts[Status.LOST] += 1
+                why["unreadable image"] = why.get("unreadable image", 0) + 1
+                unreadable.add(i)
+                continue
+            r = loc.process(frame.image, seq.camera, stamp=stamps[i], motion=None if motions is None else motions[i])
+            counts[r.status] += 1
+            reason = getattr(r, "reason", None) if r.status == Status.LOST else None
+            if reason:
+                why[reason_kind(reason)] = why.get(reason_kind(reason), 0) + 1
+            for k, v in r.timings.items():
+                stage[k] = stage.get(k, 0.0) + v
+            poses[i] = r.T_wc
+            if backfill is not None and seq.files is None:  # a video: no going back to its frames
+                if i > 0 and (poses[i] is None) != (poses[i - 1] is None) and i - 1 not in kept:
+                    kept[i - 1] = _png(prev)
+                if poses[i] is None or (i > 0 and poses[i - 1] is None):
+                    kept[i] = _png(frame.image)
+                prev = frame.image
+    except KeyboardInterrupt:  # Ctrl-C on a long recording: keep what was localized (the caller writes it)
+        done = sum(counts.values())
+        log.warning("interrupted after %d of %d frames: keeping their poses%s", done, n,
+                    ", no backward pass" if backfill is not None else "")
+        backfill, interrupted = None, True
+    stage = {k: v / max(done, 1) for k, v in stage.items()}
+    poses = poses[:done]
     if backfill is not None:
         from services.localize.backfill import backfill as backward
 
@@ -82,10 +96,10 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
         with progress_bar("backward pass", total=sum(p is None for p in poses), unit="frame") as bar:
             backward(loc, image, seq.camera, poses, stamps, motions, progress=bar.update, stats=backfill)
     traj = Trajectory()
-    for stamp, T in zip(seq.stamps[:n], poses):
+    for stamp, T in zip(seq.stamps, poses):
         if T is not None:
             traj.append(stamp, T)
-    return traj, counts, stage, time.perf_counter() - t0, why
+    return traj, counts, stage, time.perf_counter() - t0, why, interrupted
 
 
 def localize_and_report(loc, seq, args, method: str, stamped: bool = False, after=None, odometry=None) -> int:
@@ -98,11 +112,16 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
 
     n = min(len(seq), args.frames or len(seq))
     back = BackfillStats() if getattr(args, "backfill", False) else None
-    traj, counts, stage, dt, why = localize_sequence(loc, seq, n, stamped=stamped, odometry=odometry, backfill=back)
+    traj, counts, stage, dt, why, interrupted = localize_sequence(loc, seq, n, stamped=stamped, odometry=odometry,
+                                                                  backfill=back)
+    if interrupted:
+        print(f"interrupted: the first {sum(counts.values())} of {n} frames only")
+        n = sum(counts.values())
     write_tum(args.out, traj, header=f"cristal localize --method {method}: camera-to-world in the scan frame")
     print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {n - len(traj)} lost), "
           f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
     summary = {"out": args.out, "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
+               **({"interrupted": True} if interrupted else {}),
                "relocalizations": counts[Status.RELOCALIZED], "lost": n - len(traj), "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
     if back is not None:
@@ -127,4 +146,4 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     if after is not None and len(traj):
         summary.update(after(traj))
     emit_summary(summary)
-    return 0 if len(traj) else 1
+    return 130 if interrupted else 0 if len(traj) else 1  # (130: ended by Ctrl-C, as a shell reports it)
