@@ -150,6 +150,22 @@ class PoseMsg(_Msg):
         return cls(tx=v[0], ty=v[1], tz=v[2], qx=v[3], qy=v[4], qz=v[5], qw=v[6])
 
 
+class NearMsg(_Msg):
+    """Where a camera is, roughly: within ``radius_m`` of world (``x``, ``y``, ``z``) (a dock, an entrance, a robot's
+    own estimate)."""
+
+    x: float
+    y: float
+    z: float
+    radius_m: float = Field(gt=0.0, le=10_000.0)
+
+    @model_validator(mode="after")
+    def _finite(self) -> "NearMsg":
+        if not all(math.isfinite(v) for v in (self.x, self.y, self.z)):
+            raise ValueError("near: position must be finite numbers")
+        return self
+
+
 class FrameRequest(_Msg):
     """One camera frame to localize.
 
@@ -170,6 +186,10 @@ class FrameRequest(_Msg):
       10-30 ms). The server re-samples the frame into its middle row's view from the tracked motion, and reports
       poses (of the middle row, at ``stamp``) once that motion comes from frames it has undone. None or 0: a global
       shutter.
+    - ``near``: optional rough position of the camera (:class:`NearMsg`) for when the server has no pose for this
+      client: until one is reported, relocalization searches only as far from it as the camera can have moved since
+      (3 m/s), so a look-alike place elsewhere (an aisle of identical racks) does not leave the start ambiguous.
+      Ignored while the client is tracked.
     - ``reset``: forget this client's state (tracking starts over, by relocalization unless ``prior`` is given).
     - ``map``: optional map id the client expects; a server serving another map rejects with ``unknown_map``.
     - ``deadline_ms``: how long the client will wait for the reply; the server drops the frame (``dropped/deadline``)
@@ -187,6 +207,7 @@ class FrameRequest(_Msg):
     motion: PoseMsg | None = None
     exposure_s: float | None = Field(default=None, ge=0.0, le=1.0)
     readout_s: float | None = Field(default=None, ge=0.0, le=0.2)
+    near: NearMsg | None = None
     reset: bool = False
     map: str | None = Field(default=None, max_length=64)
     deadline_ms: float | None = Field(default=None, gt=0, le=600_000)

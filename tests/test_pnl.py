@@ -447,6 +447,30 @@ def test_a_crowded_frame_is_not_relocalized_at_a_look_alike_place(pnl_site, pnl_
         assert r.T_wc is None, (idx, seq.groundtruth_pose(f.stamp).distance_to(r.T_wc))
 
 
+def test_a_hint_of_where_the_camera_starts_resolves_a_twin_place(pnl_site, pnl_map):
+    """``process(near=(position, radius))``: the test map plus an identical copy 30 m away. Cold, no frame can tell the
+    two apart (ambiguous or a ratio test failed by the twins); told the camera starts within 3 m of a point 1.5 m from
+    the truth, the first frame relocalizes at the true place and the walk tracks on from it."""
+    from services.io.sequence import open_sequence
+    from services.localize.pnl import PnlLocalizer
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    plain = PnlLocalizer.load(pnl_map[0])
+    shift = np.array([30.0, 0.0, 0.0])
+    twin, lm_off = _with_look_alike(plain.idx.map, shift, set())
+    patches = _patches_with_look_alike(plain.patches, shift, lm_off)
+    f0, G0 = seq.read(0), seq.groundtruth.poses[0]
+    assert PnlLocalizer(twin, patches=patches).process(f0.image, cam).T_wc is None
+    loc = PnlLocalizer(twin, patches=patches)
+    for i in range(len(seq)):
+        f = seq.read(i)
+        r = loc.process(f.image, cam, near=(G0.t + [1.5, 0, 0], 3.0))  # (sent with every frame: kept, then ignored)
+        assert r.T_wc is not None, (i, r.reason)
+        dt, dr = seq.groundtruth_pose(f.stamp).distance_to(r.T_wc)
+        assert dt < 0.015 and dr < 0.2, (i, dt, dr)
+
+
 def test_relocalization_matching_scales_past_opencv_s_knn_limit():
     """OpenCV's brute-force kNN takes at most 2^18 train rows at once; the survey-density warehouse map has 327,379
     landmarks and its relocalization raised cv2.error. The nearest two are now taken over chunks and merged: the same

@@ -261,3 +261,25 @@ def test_a_rolling_shutter_declared_per_frame_reaches_the_tracker(service, small
     assert reps[-1].status.has_pose, reps[-1]
     dt, dr = seq.groundtruth.poses[5].distance_to(reply_pose(reps[-1]))
     assert dt < 0.05 and dr < 1.0, (dt, dr)
+
+
+def test_a_hint_of_where_the_client_starts_reaches_the_tracker(service, small_site):
+    """``FrameRequest.near``: a client that says it starts 30 m from anywhere the frame fits gets LOST, not the place
+    the database would give; without the hint the same frame relocalizes; a hint with no radius is rejected."""
+    from services.client import reply_pose
+    from services.client.client import LocalizationClient
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    G = seq.groundtruth.poses[3]
+    with LocalizationClient(config(connect=[endpoint(port)]), client_id="robot-1", site="lab", map_id="office",
+                            deadline_ms=5000) as robot:
+        assert robot.wait_for_server(5)
+        frame = seq.files[3].read_bytes()
+        far = robot.localize(frame, seq.camera, stamp=1.0, near=((G.t[0] + 30.0, G.t[1], G.t[2]), 1.0))
+        assert far.status is Status.LOST and far.reason, far
+        ok = robot.localize(frame, seq.camera, stamp=2.0, reset=True, near=(tuple(G.t), 2.0))
+        assert ok.status.has_pose and G.distance_to(reply_pose(ok))[0] < 0.05, ok
+        with pytest.raises(ValueError, match="radius_m"):
+            robot.localize(frame, seq.camera, near=(tuple(G.t), 0.0))

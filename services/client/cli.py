@@ -33,6 +33,10 @@ def register(sub) -> None:
     p.add_argument("--rolling-shutter", type=float, default=0.0, metavar="MS",
                    help="the camera's rolling-shutter readout, first row to last, in ms (phones: 10-30; default 0, a "
                         "global shutter): the server and the local fallback undo it from the tracked motion")
+    p.add_argument("--near", type=float, nargs=4, metavar=("X", "Y", "Z", "R"),
+                   help="where the stream starts, roughly: within R metres of world (X, Y, Z) (a dock, an entrance); "
+                        "sent until the first pose, so a start among look-alike places (identical aisles) is not "
+                        "ambiguous")
     p.add_argument("--deadline", type=float, default=200.0, help="ms to wait for each pose before using the local one (default 200)")
     p.add_argument("--fps", type=float, default=0.0, help="pace frames at this rate (default: as fast as replies come)")
     p.add_argument("--frames", type=int, help="only the first N frames")
@@ -59,6 +63,9 @@ class _Camera:
         return self.n
 
     def __iter__(self):
+        return self.frames()
+
+    def frames(self, tolerant: bool = False):
         import time
 
         from services.io.sequence import Frame
@@ -79,6 +86,8 @@ def run_stream(args) -> int:
 
     if not 0 <= args.rolling_shutter <= 200:
         raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
+    if args.near is not None and not (all(map(__import__("math").isfinite, args.near)) and args.near[3] > 0):
+        raise CliError(f"--near X Y Z R: a world position and a radius > 0 in metres (got {args.near})")
     from services.client.fallback import load_local
     from services.client.stream import sources_path, stream_sequence
     from services.geometry.camera import Camera
@@ -113,7 +122,8 @@ def run_stream(args) -> int:
                 print(f"P&L map bundle downloaded to {d}", flush=True)
             fallback = load_local(d)
         traj, st = stream_sequence(seq, client, fallback, args.out, frames=args.frames, fps=args.fps, odometry=odometry,
-                                   readout_s=args.rolling_shutter / 1000.0 or None)
+                                   readout_s=args.rolling_shutter / 1000.0 or None,
+                                   near=(tuple(args.near[:3]), args.near[3]) if args.near else None)
     finally:
         client.close()
     s = st.summary()

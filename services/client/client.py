@@ -29,7 +29,7 @@ import numpy as np
 from protocol import keys
 from protocol.codec import DecodeError, decode, encode
 from protocol.messages import (BundleChunk, ErrorCode, FrameRequest, Health, ImageEncoding, Intrinsics, MapBundleInfo,
-                               PoseMsg, PoseReply, SiteInfo, Status)
+                               NearMsg, PoseMsg, PoseReply, SiteInfo, Status)
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 
@@ -144,11 +144,14 @@ class LocalizationClient:
     def localize(self, image: bytes | np.ndarray, camera: Camera, stamp: float = 0.0, stamp_text: str | None = None,
                  prior: Pose | None = None, motion: Pose | None = None, reset: bool = False,
                  encoding: ImageEncoding | None = None, deadline_ms: float | None = None,
-                 exposure_s: float | None = None, readout_s: float | None = None) -> PoseReply | None:
+                 exposure_s: float | None = None, readout_s: float | None = None,
+                 near: tuple[tuple[float, float, float], float] | None = None) -> PoseReply | None:
         """Send one frame and wait up to the deadline. None: no live server or no reply in time.
 
         ``exposure_s``: the frame's exposure time when the camera reports it (the server matches motion blur with it).
         ``readout_s``: the camera's rolling-shutter readout, first row to last (phones; None: a global shutter).
+        ``near``: ((x, y, z), radius m): where the camera is, roughly, while the server has no pose for it (a start
+        among look-alike places; protocol.messages.NearMsg).
         """
         if isinstance(image, np.ndarray):
             image, encoding = encode_image(image)
@@ -172,6 +175,7 @@ class LocalizationClient:
                                prior=PoseMsg.from_tum(p.to_tum()) if p is not None else None,
                                motion=PoseMsg.from_tum(motion.to_tum()) if motion is not None else None,
                                exposure_s=exposure_s, readout_s=readout_s, reset=reset, map=self.map_id,
+                               near=NearMsg(x=near[0][0], y=near[0][1], z=near[0][2], radius_m=near[1]) if near else None,
                                deadline_ms=left_ms)
             rep = self.request_raw(encode(req), server, left_ms / 1e3)
             if rep is None:

@@ -59,7 +59,7 @@ class LocalFallback:
             self.loc.reset()
 
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, motion: Pose | None = None,
-                stamp: float | None = None, readout_s: float | None = None) -> LocalResult:
+                stamp: float | None = None, readout_s: float | None = None, near=None) -> LocalResult:
         """``motion``: the device's odometry since the previous frame (the localizer predicts from its last pose
         with it, and carries that pose on through LOST frames); ``stamp``: capture time (s)."""
         t0 = time.perf_counter()
@@ -68,6 +68,8 @@ class LocalFallback:
         self.seeded_fresh = False
         try:
             kw = {"readout_s": readout_s} if readout_s else {}  # (a rolling shutter, undone by the P&L localizer)
+            if near is not None:  # (where the device is, roughly, until it has a pose)
+                kw["near"] = near
             r = self.loc.process(image, camera, prior, motion=motion, stamp=stamp, **kw)
         except Exception as e:  # noqa: BLE001
             self.errors += 1

@@ -80,12 +80,14 @@ def _frame_bytes(seq, i: int, image: np.ndarray):
 def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallback | None, out: str | Path | None = None,
                     frames: int | None = None, fps: float = 0.0, deadline_ms: float | None = None,
                     on_frame=None, odometry: Trajectory | None = None,
-                    readout_s: float | None = None) -> tuple[Trajectory, StreamStats]:
+                    readout_s: float | None = None, near=None) -> tuple[Trajectory, StreamStats]:
     """Stream ``seq`` (a services.io.sequence.Sequence, or anything with its ``camera``, ``stamps``, ``len`` and
     ``frames(tolerant=True)``) and write the trajectory + sources; a frame whose file is missing or broken gets no pose
     and the stream goes on. ``fps`` > 0 paces frames at that rate. ``odometry``: the
     device's own trajectory (any frame of its own): each frame is sent with its motion since the previous one.
-    ``readout_s``: the camera's rolling-shutter readout (server and local fallback undo it; None: global shutter)."""
+    ``readout_s``: the camera's rolling-shutter readout (server and local fallback undo it; None: global shutter).
+    ``near``: ((x, y, z), radius m) where the stream starts, roughly: sent with every frame until one has a pose (the
+    server may be reached only later), and given to the local fallback."""
     from services.log import progress
 
     traj = Trajectory()
@@ -118,7 +120,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
             data, enc = _frame_bytes(seq, i, frame.image)
             t0 = time.perf_counter()
             rep = client.localize(data, cam, stamp=stamp_f, stamp_text=frame.stamp, encoding=enc, deadline_ms=deadline_ms,
-                                  motion=motions[i], readout_s=readout_s)
+                                  motion=motions[i], readout_s=readout_s, near=near if not len(traj) else None)
             rtt = 1e3 * (time.perf_counter() - t0)
             if rep is None:
                 st.missed += 1
@@ -146,7 +148,8 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
             if fallback is not None:
                 fallback.seed(T)
         elif fallback is not None:
-            lr = fallback.process(frame.image, cam, motion=motions[i], stamp=stamp_f, readout_s=readout_s)
+            lr = fallback.process(frame.image, cam, motion=motions[i], stamp=stamp_f, readout_s=readout_s,
+                                  near=near if not len(traj) else None)
             if lr.T_wc is not None:
                 T, source = lr.T_wc, "local"
                 st.local += 1

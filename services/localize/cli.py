@@ -25,6 +25,8 @@ examples:
   cristal localize site/map site/seq_00 --method pnl --map site/map --out traj.txt     Prebuild & Localize (CPU, no torch)
   cristal localize scan.ply walk.mp4 --method rm --db db.npz --out traj.txt --backfill    offline: also the frames
                                                                               before the first place it could tell apart
+  cristal localize scan.ply robot/ --method rm --db db.npz --out traj.txt --near 12.5 3.0 1.2 3    started within 3 m
+                                                                              of its dock (a site of look-alike aisles)
 
 Writes a TUM trajectory (camera-to-world in the scan frame; frames without a pose are absent),
 prints frames localized, relocalizations and FPS per stage, the LOST frames by reason (Render & Match:
@@ -85,6 +87,11 @@ def register(sub) -> None:
                         "stretch (frames recorded before the camera saw a place it could tell apart, e.g. an aisle of "
                         "identical racks). Same gates; a stretch is kept only if its track back lands on the pose "
                         "before it. The summary's 'backfilled' counts them; FPS then covers both passes")
+    p.add_argument("--near", type=float, nargs=4, metavar=("X", "Y", "Z", "R"),
+                   help="where the first frame was taken, roughly: within R metres of world (X, Y, Z) (a dock, an "
+                        "entrance). Until the first pose, relocalization searches only as far from there as the camera "
+                        "can have gone (3 m/s), so a look-alike place elsewhere (identical aisles) does not make the "
+                        "start ambiguous")
     p.add_argument("--rolling-shutter", type=float, default=0.0, metavar="MS",
                    help="the camera's rolling-shutter readout, first row to last, in milliseconds (phones: 10-30; "
                         "default 0, a global shutter). Frames are re-sampled as if read at their middle row's time "
@@ -237,6 +244,8 @@ def run_localize(args) -> int:
 
     if not 0 <= args.rolling_shutter <= 200:
         raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
+    if args.near is not None and not (all(map(__import__("math").isfinite, args.near)) and args.near[3] > 0):
+        raise CliError(f"--near X Y Z R: a world position and a radius > 0 in metres (got {args.near})")
     if args.method == "pnl":
         from services.localize.pnl_cli import run_localize_pnl
 

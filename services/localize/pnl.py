@@ -119,6 +119,7 @@ class PnlConfig:
     reloc_ambiguity: float = 0.8  # another place with this share of the best's inliers makes a relocalization ambiguous,
     reloc_cold_ambiguity: float = 0.5  # ... and so do two places over 2 m away with this share (services.relocalize.ambiguity)
     use_velocity: bool = True
+    max_speed_mps: float = 3.0  # a caller's hint of where the camera is (``near``) widens by this much a second until a pose
     readout_s: float = 0.0  # rolling shutter: rows read top to bottom over this long (0 = global shutter); a frame with a
     #                         motion to predict it is re-sampled as if read at its middle row's time (as Render & Match)
     odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for
@@ -308,6 +309,7 @@ class _Frame:
     inv_sigma2: np.ndarray | None = None  # (N,) 1 / scale^(2 octave)
     gray: np.ndarray | None = None  # undistorted grey float32, for patch alignment (see PnlLocalizer._gray)
     reason: str | None = None  # why this frame has no pose, when it has none
+    near_rows: np.ndarray | None = None  # relocalization rows of the landmarks within a caller's hint (None: no hint)
 
 
 def _iso(w: np.ndarray) -> np.ndarray:
@@ -346,6 +348,7 @@ class PnlLocalizer:
         self._local_P = np.zeros((0, 3))
         self.relocalizations = 0
         self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
+        self._near: tuple[np.ndarray, float, float | None, int] | None = None  # hint: position, radius, stamp, frames since
         log.info("P&L localizer: %d keyframes, %d landmarks indexed in %.2f s", stella_map.n_keyframes,
                  stella_map.n_landmarks, time.perf_counter() - t0)
 
@@ -384,6 +387,7 @@ class PnlLocalizer:
         """Forget the pose: the next frame relocalizes."""
         self.T_last = None
         self._vel = None
+        self._near = None
         self.shutter.reset()
         self.carry.reset()
 
@@ -821,7 +825,10 @@ class PnlLocalizer:
         t0 = time.perf_counter()
         idx, cfg = self.idx, self.cfg
         fr.reason = f"no place in the map fits the frame: {len(fr.feats)} keypoints on the frame"
-        if len(fr.feats) < 10 or len(idx._reloc_rows) < 10:
+        everywhere = idx._reloc_rows if fr.near_rows is None else fr.near_rows  # (a hint: only the landmarks near it)
+        if len(fr.feats) < 10 or len(everywhere) < 10:
+            if fr.near_rows is not None:
+                fr.reason = f"no place in the map near the given position: {len(everywhere)} landmarks within reach"
             return None
         # the strongest keypoints first: the kNN against every landmark is the cost of a relocalization. A frame no
         # place fits with them is matched with more, against the landmarks around the keyframes its matches voted for,
@@ -830,7 +837,7 @@ class PnlLocalizer:
         # every landmark made a LOST frame on the 327 k-landmark warehouse map take 1.1 s instead of 0.6; this way 0.6)
         order = np.argsort(-fr.feats.responses)
         q, lm, done = np.zeros(0, np.int64), np.zeros(0, np.int64), 0
-        rows, votes = idx._reloc_rows, None
+        rows, votes = everywhere, None
         for budget in (cfg.reloc_keypoints, cfg.reloc_keypoints_crowded):
             budget = min(budget, len(order))
             if budget <= done:
@@ -846,7 +853,7 @@ class PnlLocalizer:
                 # distinct only among the voted places' landmarks is not distinct: a look-alike bay elsewhere holds the
                 # same corners (survey-density warehouse: frame 313 matched a bay 28.6 m off this way and was tracked
                 # there for 38 frames). Those matches face every landmark's ratio test too, as the first pass's did.
-                qsel, lsel = self._ratio_matches(fr.feats.desc, qsel, idx._reloc_rows)
+                qsel, lsel = self._ratio_matches(fr.feats.desc, qsel, everywhere)
             q, lm = np.concatenate([q, qsel]), np.concatenate([lm, lsel])
             tm["reloc_match_ms"] = tm.get("reloc_match_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
             results, votes = [], None
@@ -905,6 +912,20 @@ class PnlLocalizer:
             fr.reason = f"no place in the map was confirmed: the best ({n_best} PnP inliers) did not track from its coarse pose"
         return r
 
+    def _near_rows(self, stamp: float | None) -> np.ndarray | None:
+        """The relocalization rows of the landmarks seen from keyframes within the caller's hint (its radius grown by
+        ``max_speed_mps`` since it was given), or None without a hint."""
+        if self._near is None:
+            return None
+        pos, radius, s0, frames = self._near
+        dt = max(0.0, stamp - s0) if s0 is not None and stamp is not None else frames / 30.0
+        idx = self.idx
+        kf = np.flatnonzero(np.linalg.norm(idx.kf_center - pos, axis=1) <= radius + self.cfg.max_speed_mps * dt)
+        if len(kf) == 0:
+            return idx._reloc_rows[:0]
+        lms = np.unique(np.concatenate([idx.kf_lms[i] for i in kf]))
+        return idx._reloc_rows[np.isin(idx._reloc_rows, lms)]
+
     def _stretched(self, fr: _Frame) -> _Frame | None:
         """The frame for a second relocalization with its grey levels stretched (``reloc_stretch_*``), or None when they
         already span enough. Only ORB sees it: patch alignment is normalised per window."""
@@ -919,11 +940,15 @@ class PnlLocalizer:
 
     # ---- the frame loop ---------------------------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, motion: Pose | None = None,
-                stamp: float | None = None, readout_s: float | None = None) -> PnlResult:
+                stamp: float | None = None, readout_s: float | None = None,
+                near: tuple[np.ndarray, float] | None = None) -> PnlResult:
         """Localize one frame (grey or BGR uint8). ``prior``: a camera-to-world hint (server) for this frame.
         ``motion``: the camera's motion since the previous frame from the device's odometry (``T_prev^-1 @ T_now``):
         it predicts the frame, and carries the pose on through LOST frames for up to ``odometry_carry_s``
-        (``stamp``: capture time in seconds, for that clock; frames/30 without)."""
+        (``stamp``: capture time in seconds, for that clock; frames/30 without). ``near``: (world position, radius m) the
+        camera is within at this frame, roughly (a dock, an entrance): until a pose is reported, relocalization matches
+        only the landmarks of keyframes as far from it as the camera can have gone since (``max_speed_mps``), so a
+        look-alike place elsewhere neither takes the descriptor matches nor makes it ambiguous. Ignored while tracking."""
         tm: dict[str, float] = {}
         t_start = time.perf_counter()
         c_start = time.thread_time()
@@ -966,7 +991,18 @@ class PnlLocalizer:
                 r = self._track(fr, self.T_last, 2 * self.cfg.coarse_radius_px, tm)
         if unrolled and motion is None and self._plausible(r) and self.patches is not None:
             r, fr = self._unrolled_again(image, camera, fr, r, move, dt, readout, depth, tm)
+        if near is not None and self.T_last is None:
+            pos, radius = np.asarray(near[0], np.float64).reshape(3), float(near[1])
+            if not (np.all(np.isfinite(pos)) and 0 < radius < float("inf")):
+                raise ValueError(f"near: a finite position and a positive radius, not {near!r}")
+            if self._near is None or self._near[1] != radius or not np.array_equal(self._near[0], pos):
+                self._near = (pos, radius, stamp, 0)  # (the same hint again keeps its clock)
+            else:
+                self._near = (*self._near[:3], self._near[3] + 1)
+        elif self._near is not None:
+            self._near = (*self._near[:3], self._near[3] + 1)  # frames since the hint (its clock without stamps)
         if not self._plausible(r):
+            fr.near_rows = self._near_rows(stamp)
             r = self._relocalize(fr, tm)
             if not self._plausible(r) and (dim := self._stretched(fr)) is not None:
                 r = self._relocalize(dim, tm)
@@ -998,5 +1034,5 @@ class PnlLocalizer:
             return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg,
                              f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)"
                              if not self._good(r, fr) else NOT_UNDONE)
-        self.T_last = T_wc
+        self.T_last, self._near = T_wc, None
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)

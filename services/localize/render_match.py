@@ -119,6 +119,8 @@ class RMConfig:
     anchor_s: float = 30.0  # ... fast a camera could have got to (+1 m): no jumping to an identical aisle 40 m away
     max_accel_mps2: float = 3.0  # ... and, when its velocity then is known, accepts only a pose this close to where that
     reach_m: float = 0.3  # ... velocity leads (+ this): not the identical rack bay 2 m on (0.6 m after 0.4 s, 1.5 m after 0.9 s)
+    hint_view_reach_m: float = 3.0  # with a caller's hint (process(near=...)): database views this much beyond where
+    #                                 the camera can be are searched too (a view of the frame's wall may stand further off)
     reloc_check: int = 32  # a relocalization is refused when views ranked up to this hold a rival place ...
     reloc_check_fraction: float = 0.02  # ... or up to this fraction of the database, if more (warehouse at 1 m, 6180
     #                                     views: the top 32 held no rival of a pose 40 m off, the top 128 four) ...
@@ -189,6 +191,18 @@ class Keyframe:
     direct: tuple | None = None  # (LandmarkPatches, world points, render pixels): corner patches, for direct tracking
     direct_blurred: LandmarkPatches | None = None  # the same corners' patches cut from the blurred render
     median_depth: float | None = None  # of the render's measured depth (see RenderMatchTracker._scene_depth)
+
+
+@dataclass
+class _Anchor:
+    """Where the camera was last known to be, for a relocalization that follows: the last reported pose (1 m) or a
+    caller's hint (``process(near=...)``); it widens by ``max_speed_mps`` a second, for ``anchor_s``."""
+
+    position: np.ndarray  # world (3,)
+    stamp: float | None  # when (None: a hint given with no clock yet)
+    velocity: np.ndarray | None  # world velocity then, when tracked (tightens the reach)
+    radius: float
+    hint: bool = False
 
 
 @dataclass
@@ -307,8 +321,7 @@ class RenderMatchTracker:
         """Forget the track (the next frame relocalizes from the database)."""
         self._lose()
         self.recent: tuple[Pose, float | None] | None = None  # last good pose and its stamp, kept while LOST
-        self.anchor: tuple[Pose, float, np.ndarray | None] | None = None  # last reported pose, its stamp and the
-        #                                                                   camera's world velocity then (if tracked)
+        self.anchor: _Anchor | None = None  # where the camera was last known to be (a reported pose or a caller's hint)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.lost_frames = 0
         self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
@@ -884,7 +897,8 @@ class RenderMatchTracker:
 
     # ---- the frame loop --------------------------------------------------------
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None = None, stamp: float | None = None,
-                exposure_s: float | None = None, motion: Pose | None = None, readout_s: float | None = None) -> FrameResult:
+                exposure_s: float | None = None, motion: Pose | None = None, readout_s: float | None = None,
+                near: tuple[np.ndarray, float] | None = None) -> FrameResult:
         """Localize one frame.
 
         ``image``: uint8, any channel order. ``prior``: a pose hint (e.g. from odometry) used when the
@@ -893,6 +907,10 @@ class RenderMatchTracker:
         exposure time when the camera reports it. ``motion``: the camera's motion since the previous
         frame from the device's own odometry (``T_prev^-1 @ T_now``); it replaces the constant-velocity guess.
         ``readout_s``: the camera's rolling-shutter readout for this frame (None: ``cfg.readout_s``; 0: a global shutter).
+        ``near``: (world position, radius m) the camera is within at this frame, roughly (a dock, an entrance, a
+        robot's own estimate), for when the tracker has no pose: relocalization then searches only as far from it as
+        the camera can have gone since (``max_speed_mps``), and a look-alike place beyond does not make it ambiguous
+        (a start in an aisle of identical racks). Kept until a pose is reported; ignored while tracking.
         """
         t_start = time.perf_counter()
         odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
@@ -913,6 +931,13 @@ class RenderMatchTracker:
         predicted: Pose | None = None  # where the motion model put this frame, when it had a motion
         if prior is not None and self.T_last is None:
             self.T_last = prior
+        if near is not None and self.T_last is None:
+            pos, radius = np.asarray(near[0], np.float64).reshape(3), float(near[1])
+            if not (np.all(np.isfinite(pos)) and 0 < radius < float("inf")):
+                raise ValueError(f"near: a finite position and a positive radius, not {near!r}")
+            a = self.anchor
+            if a is None or not a.hint or a.radius != radius or not np.array_equal(a.position, pos):
+                self.anchor = _Anchor(pos, stamp, None, radius, hint=True)  # (the same hint again keeps its clock)
         carry: Pose | None = None  # where the device's odometry puts this frame, should it be LOST
         if self.T_last is not None:
             T_pred = self.T_last
@@ -982,14 +1007,19 @@ class RenderMatchTracker:
                 self.recent = None
         if not self._plausible(r) and self.db is not None:
             near = reach = None
-            if self.anchor is not None and stamp is not None and 0 <= stamp - self.anchor[1] <= self.cfg.anchor_s:
-                T_a, s_a, v_a = self.anchor
-                dt = stamp - s_a
-                near = (T_a.t, 1.0 + self.cfg.max_speed_mps * dt)  # also the reach, unless the velocity tightens it
-                if v_a is not None:  # it kept moving about as it did: at most max_accel away from that
+            a = self.anchor
+            if a is not None and a.stamp is None:  # a hint given before the clock started: from now on
+                a.stamp = stamp
+            if a is not None and (a.stamp is None or (stamp is not None and 0 <= stamp - a.stamp <= self.cfg.anchor_s)):
+                dt = 0.0 if a.stamp is None or stamp is None else stamp - a.stamp
+                near = (a.position, a.radius + self.cfg.max_speed_mps * dt)  # also the reach, unless tightened
+                if a.hint:  # the camera is within it; the views it matches best may stand further off (a wall seen
+                    #         from across the room: the small test site's best view of a frame stood 2.3 m away)
+                    reach, near = near, (a.position, near[1] + self.cfg.hint_view_reach_m)
+                elif a.velocity is not None:  # it kept moving about as it did: at most max_accel away from that
                     tight = self.cfg.reach_m + 0.5 * self.cfg.max_accel_mps2 * dt * dt
                     if tight < near[1]:
-                        reach = (T_a.t + v_a * dt, tight)
+                        reach = (a.position + a.velocity * dt, tight)
             r = self._relocalize(fr, near, reach)
             if self._good(r):
                 status = Status.RELOCALIZED
@@ -1037,7 +1067,7 @@ class RenderMatchTracker:
             if self.motion is not None and status == Status.TRACKING and consecutive:
                 v = (r.T_wc.t - T_prev.t) / self.motion[1]
                 v = v if np.linalg.norm(v) <= self.cfg.max_speed_mps else None
-            self.anchor = (r.T_wc, stamp, v)
+            self.anchor = _Anchor(r.T_wc.t, stamp, v, 1.0)
         reason = None
         if not good:
             reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg 1-sigma)"

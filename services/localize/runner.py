@@ -25,12 +25,13 @@ def _png(image) -> bytes:
 
 
 def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamped: bool = False, odometry=None,
-                      backfill=None):
+                      backfill=None, near=None):
     """Run a localizer over the first ``n`` frames (``stamped``: pass each frame's capture time, which
     Render & Match uses for constant velocity and motion blur; ``odometry``: the device's own trajectory
     (services.io.trajectory.Trajectory, any world frame), passed as each frame's ``motion`` since the previous
     frame where both have one; ``backfill``: a services.localize.backfill.BackfillStats to run the offline backward
-    pass and count into). Returns (trajectory, status counts of the forward pass, mean ms per stage of the forward
+    pass and count into; ``near``: (position, radius m) where the first frame was taken, roughly, passed to the
+    localizer with it). Returns (trajectory, status counts of the forward pass, mean ms per stage of the forward
     pass, seconds of both passes, LOST frames per reason in the forward pass, interrupted): Ctrl-C ends the pass
     early and keeps the frames localized so far (no backward pass then)."""
     import cv2
@@ -63,7 +64,9 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
                 why["unreadable image"] = why.get("unreadable image", 0) + 1
                 unreadable.add(i)
                 continue
-            r = loc.process(frame.image, seq.camera, stamp=stamps[i], motion=None if motions is None else motions[i])
+            hint = {"near": near} if near is not None and i == 0 else {}
+            r = loc.process(frame.image, seq.camera, stamp=stamps[i], motion=None if motions is None else motions[i],
+                            **hint)
             counts[r.status] += 1
             reason = getattr(r, "reason", None) if r.status == Status.LOST else None
             if reason:
@@ -112,8 +115,9 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
 
     n = min(len(seq), args.frames or len(seq))
     back = BackfillStats() if getattr(args, "backfill", False) else None
+    near = (tuple(args.near[:3]), args.near[3]) if getattr(args, "near", None) else None
     traj, counts, stage, dt, why, interrupted = localize_sequence(loc, seq, n, stamped=stamped, odometry=odometry,
-                                                                  backfill=back)
+                                                                  backfill=back, near=near)
     if interrupted:
         print(f"interrupted: the first {sum(counts.values())} of {n} frames only")
         n = sum(counts.values())

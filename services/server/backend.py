@@ -50,9 +50,11 @@ class _RMTracker:
         self.t.reset()
 
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None,
-                stamp: float | None = None, exposure_s: float | None = None, readout_s: float | None = None) -> TrackResult:
+                stamp: float | None = None, exposure_s: float | None = None, readout_s: float | None = None,
+                near=None) -> TrackResult:
         # stamps give the tracker its constant-velocity prediction and motion-blur model; odometry replaces the former
-        r = self.t.process(image, camera, prior, stamp=stamp, motion=motion, exposure_s=exposure_s, readout_s=readout_s)
+        r = self.t.process(image, camera, prior, stamp=stamp, motion=motion, exposure_s=exposure_s, readout_s=readout_s,
+                           near=near)
         return TrackResult(_status(r.status), r.T_wc, int(r.inliers), float(r.rmse_px), float(r.sigma_m),
                            float(r.sigma_deg), dict(r.timings), getattr(r, "reason", None))
 
@@ -120,9 +122,10 @@ class _PnlTracker:
         self.loc.reset()
 
     def process(self, image: np.ndarray, camera: Camera, prior: Pose | None, motion: Pose | None,
-                stamp: float | None = None, exposure_s: float | None = None, readout_s: float | None = None) -> TrackResult:
+                stamp: float | None = None, exposure_s: float | None = None, readout_s: float | None = None,
+                near=None) -> TrackResult:
         # odometry: predicts, carries through LOST
-        r = self.loc.process(image, camera, prior, motion=motion, stamp=stamp, readout_s=readout_s)
+        r = self.loc.process(image, camera, prior, motion=motion, stamp=stamp, readout_s=readout_s, near=near)
         return TrackResult(_status(r.status), r.T_wc, int(getattr(r, "inliers", 0)), float(getattr(r, "rmse_px", np.nan)),
                            timings=dict(getattr(r, "timings", {}) or {}), reason=getattr(r, "reason", None))
 

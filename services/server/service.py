@@ -399,9 +399,11 @@ class LocalizationServer:
             c.T_last = None
         prior = Pose.from_tum(req.prior.as_tum()) if req.prior is not None else None
         motion = Pose.from_tum(req.motion.as_tum()) if req.motion is not None else None
-        rolling = {"readout_s": req.readout_s} if req.readout_s else {}  # (backends from before it need not take it)
+        extra = {"readout_s": req.readout_s} if req.readout_s else {}  # (backends from before them need not take them)
+        if req.near is not None:
+            extra["near"] = ((req.near.x, req.near.y, req.near.z), req.near.radius_m)
         r = c.tracker.process(img, cam, prior, motion, stamp=req.stamp if req.stamp > 0 else None, exposure_s=req.exposure_s,
-                              **rolling)
+                              **extra)
         c.T_last = r.T_wc
         c.frames += 1
         tm.update({k: float(v) for k, v in r.timings.items() if k != "total_ms"})
