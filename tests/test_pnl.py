@@ -129,6 +129,37 @@ def test_ctrl_c_keeps_the_frames_localized_so_far(pnl_site, pnl_map, tmp_path, c
     assert 4 <= len(got) <= 5 and set(got.stamps) <= set(seq.stamps[:5])
 
 
+def test_a_stream_ended_by_ctrl_c_writes_what_it_localized(pnl_site, pnl_map, tmp_path):
+    """A live camera's stream ends with Ctrl-C: the frames localized so far (here by the on-device P&L fallback, no
+    server) are written with their sources, and the stats say it was interrupted."""
+    from services.client.fallback import load_local
+    from services.client.stream import sources_path, stream_sequence
+    from services.io.sequence import open_sequence
+    from services.io.trajectory import read_tum
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+
+    class LiveUntilCtrlC:  # the sequence's frames, then the user's Ctrl-C
+        camera, stamps, groundtruth, files = seq.camera, seq.stamps, seq.groundtruth, None
+
+        def __len__(self):
+            return 10 ** 9
+
+        def frames(self, tolerant=False):
+            for i in range(5):
+                yield seq.read(i)
+            raise KeyboardInterrupt
+
+    traj_path = tmp_path / "live.txt"
+    traj, st = stream_sequence(LiveUntilCtrlC(), None, load_local(pnl_map[0]), traj_path)
+    assert st.interrupted and st.summary()["interrupted"] and st.frames == 5
+    got = read_tum(traj_path)
+    assert len(got) == len(traj) >= 4 and len(sources_path(traj_path).read_text().splitlines()) == 6
+    for stamp, T in zip(got.stamps, got.poses):
+        assert seq.groundtruth_pose(stamp).distance_to(T)[0] < 0.015
+
+
 def test_localize_pnl_without_map_is_a_clear_error(tmp_path):
     r = _cli("localize", tmp_path, tmp_path, "--method", "pnl", "--out", tmp_path / "t.txt")
     assert r.returncode == 2 and "--map" in r.stdout + r.stderr

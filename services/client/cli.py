@@ -139,4 +139,4 @@ def run_stream(args) -> int:
         print(line)
         summary.update(fields)
     emit_summary(summary)
-    return 0 if len(traj) else 1
+    return 130 if st.interrupted else 0 if len(traj) else 1  # (130: ended by Ctrl-C, as a shell reports it)

@@ -50,16 +50,22 @@ class StreamStats:
     server_ms: list[float] = field(default_factory=list)  # the server's own arrival-to-reply time
     wall_s: float = 0.0
     rows: list[tuple] = field(default_factory=list)
+    interrupted: bool = False  # ended by Ctrl-C (a live camera's usual end)
 
     def summary(self) -> dict:
         rtt = np.array(self.rtt_ms) if self.rtt_ms else np.array([np.nan])
         srv = np.array(self.server_ms) if self.server_ms else np.array([np.nan])
+
+        def pct(a: np.ndarray, q: float) -> float:  # NaN, not a warning, when no frame had a reply
+            return round(float(np.nanpercentile(a, q)), 2) if np.isfinite(a).any() else float("nan")
+
         return {"frames": self.frames, "server": self.server, "local": self.local, "no_pose": self.none,
                 "missed": self.missed, "lost": self.lost, "lost_reasons": dict(self.lost_reasons),
                 "dropped": self.dropped, "rejected": self.rejected,
                 "switches": self.switches, "fps": round(self.frames / self.wall_s, 2) if self.wall_s else 0.0,
-                "rtt_p50_ms": round(float(np.nanpercentile(rtt, 50)), 2), "rtt_p99_ms": round(float(np.nanpercentile(rtt, 99)), 2),
-                "overhead_p50_ms": round(float(np.nanpercentile(rtt - srv, 50)), 2) if len(rtt) == len(srv) else None}
+                "rtt_p50_ms": pct(rtt, 50), "rtt_p99_ms": pct(rtt, 99),
+                "overhead_p50_ms": pct(rtt - srv, 50) if len(rtt) == len(srv) else None,
+                **({"interrupted": True} if self.interrupted else {})}
 
 
 def _frame_bytes(seq, i: int, image: np.ndarray):
@@ -96,72 +102,76 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
     t_start = time.perf_counter()
     period = 1.0 / fps if fps and fps > 0 else 0.0
     motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else [None] * n
-    for i, frame in enumerate(progress(seq.frames(tolerant=True), desc="streaming", total=n, unit="frame")):
-        if i >= n:
-            break
-        if frame.image is None:  # a missing or broken file (logged): no pose for it, the stream goes on
-            st.frames += 1
-            st.none += 1
-            st.rows.append((frame.stamp, "-", "unreadable", "-", float("nan")))
-            continue
-        if period:
-            wait = t_start + i * period - time.perf_counter()
-            if wait > 0:
-                time.sleep(wait)
-        cam = seq.camera
-        T: Pose | None = None
-        source, status, server, rtt = "-", "none", "-", float("nan")
-        rep = None
-        try:
-            stamp_f = float(frame.stamp)
-        except ValueError:
-            stamp_f = float(i)
-        if client is not None:
-            data, enc = _frame_bytes(seq, i, frame.image)
-            t0 = time.perf_counter()
-            rep = client.localize(data, cam, stamp=stamp_f, stamp_text=frame.stamp, encoding=enc, deadline_ms=deadline_ms,
-                                  motion=motions[i], readout_s=readout_s, near=near if not len(traj) else None)
-            rtt = 1e3 * (time.perf_counter() - t0)
-            if rep is None:
-                st.missed += 1
-                status = "missed"
+    try:
+        for i, frame in enumerate(progress(seq.frames(tolerant=True), desc="streaming", total=n, unit="frame")):
+            if i >= n:
+                break
+            if frame.image is None:  # a missing or broken file (logged): no pose for it, the stream goes on
+                st.frames += 1
+                st.none += 1
+                st.rows.append((frame.stamp, "-", "unreadable", "-", float("nan")))
+                continue
+            if period:
+                wait = t_start + i * period - time.perf_counter()
+                if wait > 0:
+                    time.sleep(wait)
+            cam = seq.camera
+            T: Pose | None = None
+            source, status, server, rtt = "-", "none", "-", float("nan")
+            rep = None
+            try:
+                stamp_f = float(frame.stamp)
+            except ValueError:
+                stamp_f = float(i)
+            if client is not None:
+                data, enc = _frame_bytes(seq, i, frame.image)
+                t0 = time.perf_counter()
+                rep = client.localize(data, cam, stamp=stamp_f, stamp_text=frame.stamp, encoding=enc, deadline_ms=deadline_ms,
+                                      motion=motions[i], readout_s=readout_s, near=near if not len(traj) else None)
+                rtt = 1e3 * (time.perf_counter() - t0)
+                if rep is None:
+                    st.missed += 1
+                    status = "missed"
+                else:
+                    status, server = rep.status.value, rep.server or "-"
+                    if rep.status.value == "lost":
+                        st.lost += 1
+                        kind = reason_kind(rep.reason)
+                        if kind not in st.lost_reasons:  # once per kind: a repetitive site's "ambiguous place" asks for a prior
+                            log.info("frame %s lost: %s", frame.stamp, rep.reason)
+                        st.lost_reasons[kind] = st.lost_reasons.get(kind, 0) + 1
+                    elif rep.status.value == "dropped":
+                        st.dropped += 1
+                    elif rep.status.value == "rejected":
+                        st.rejected += 1
+                        log.warning("frame %s rejected: %s (%s)", frame.stamp, rep.reason, rep.error)
+                    T = reply_pose(rep)
+                    if T is not None:
+                        st.rtt_ms.append(rtt)
+                        st.server_ms.append(float(rep.timings.get("total_ms", np.nan)))
+            if T is not None:
+                source = "server"
+                st.server += 1
+                if fallback is not None:
+                    fallback.seed(T)
+            elif fallback is not None:
+                lr = fallback.process(frame.image, cam, motion=motions[i], stamp=stamp_f, readout_s=readout_s,
+                                      near=near if not len(traj) else None)
+                if lr.T_wc is not None:
+                    T, source = lr.T_wc, "local"
+                    st.local += 1
+                    status = f"{status}/{lr.status}"
+            if T is None:
+                st.none += 1
             else:
-                status, server = rep.status.value, rep.server or "-"
-                if rep.status.value == "lost":
-                    st.lost += 1
-                    kind = reason_kind(rep.reason)
-                    if kind not in st.lost_reasons:  # once per kind: a repetitive site's "ambiguous place" asks for a prior
-                        log.info("frame %s lost: %s", frame.stamp, rep.reason)
-                    st.lost_reasons[kind] = st.lost_reasons.get(kind, 0) + 1
-                elif rep.status.value == "dropped":
-                    st.dropped += 1
-                elif rep.status.value == "rejected":
-                    st.rejected += 1
-                    log.warning("frame %s rejected: %s (%s)", frame.stamp, rep.reason, rep.error)
-                T = reply_pose(rep)
-                if T is not None:
-                    st.rtt_ms.append(rtt)
-                    st.server_ms.append(float(rep.timings.get("total_ms", np.nan)))
-        if T is not None:
-            source = "server"
-            st.server += 1
-            if fallback is not None:
-                fallback.seed(T)
-        elif fallback is not None:
-            lr = fallback.process(frame.image, cam, motion=motions[i], stamp=stamp_f, readout_s=readout_s,
-                                  near=near if not len(traj) else None)
-            if lr.T_wc is not None:
-                T, source = lr.T_wc, "local"
-                st.local += 1
-                status = f"{status}/{lr.status}"
-        if T is None:
-            st.none += 1
-        else:
-            traj.append(frame.stamp, T)
-        st.frames += 1
-        st.rows.append((frame.stamp, source, status, server, rtt))
-        if on_frame is not None:
-            on_frame(i, frame, T, source, rep)
+                traj.append(frame.stamp, T)
+            st.frames += 1
+            st.rows.append((frame.stamp, source, status, server, rtt))
+            if on_frame is not None:
+                on_frame(i, frame, T, source, rep)
+    except KeyboardInterrupt:  # Ctrl-C ends a live camera's stream: what was localized is still written
+        st.interrupted = True
+        log.warning("interrupted after %d frames: writing their poses", st.frames)
     st.wall_s = time.perf_counter() - t_start
     st.switches = client.switches if client is not None else 0
     if out is not None:
