@@ -310,6 +310,7 @@ class _Frame:
     gray: np.ndarray | None = None  # undistorted grey float32, for patch alignment (see PnlLocalizer._gray)
     reason: str | None = None  # why this frame has no pose, when it has none
     near_rows: np.ndarray | None = None  # relocalization rows of the landmarks within a caller's hint (None: no hint)
+    near: tuple[np.ndarray, float] | None = None  # that hint now: (position, how far the camera can be from it)
 
 
 def _iso(w: np.ndarray) -> np.ndarray:
@@ -860,6 +861,8 @@ class PnlLocalizer:
             if len(q) >= cfg.reloc_min_inliers:
                 votes = self._votes(lm)
                 results = self._places(fr, q, lm, votes)
+                if fr.near is not None:  # a caller's hint: no place where the camera cannot be (coarse: + 0.5 m)
+                    results = [(n, T) for n, T in results if np.linalg.norm(T.t - fr.near[0]) <= fr.near[1] + 0.5]
             if results and max(n for n, _ in results) >= cfg.reloc_min_inliers:
                 break
         tm["relocalize_ms"] = tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)  # (twice when stretched)
@@ -912,19 +915,25 @@ class PnlLocalizer:
             fr.reason = f"no place in the map was confirmed: the best ({n_best} PnP inliers) did not track from its coarse pose"
         return r
 
-    def _near_rows(self, stamp: float | None) -> np.ndarray | None:
-        """The relocalization rows of the landmarks seen from keyframes within the caller's hint (its radius grown by
-        ``max_speed_mps`` since it was given), or None without a hint."""
+    def _hinted(self, fr: _Frame, stamp: float | None) -> None:
+        """With a caller's hint: where the camera can be now (``fr.near``: its radius grown by ``max_speed_mps`` since it
+        was given) and the relocalization rows of the landmarks seen from keyframes within it, or from the nearest
+        keyframe position when none is (``fr.near_rows``). Not wider: in a site of identical rack bays every landmark
+        more is a look-alike for the ratio test (survey-density warehouse, 24 frames hinted within 1 m of the truth:
+        7 relocalized so, 5 and 4 with the keyframes 1-3 m further too)."""
         if self._near is None:
-            return None
+            return
         pos, radius, s0, frames = self._near
         dt = max(0.0, stamp - s0) if s0 is not None and stamp is not None else frames / 30.0
+        fr.near = (pos, radius + self.cfg.max_speed_mps * dt)
         idx = self.idx
-        kf = np.flatnonzero(np.linalg.norm(idx.kf_center - pos, axis=1) <= radius + self.cfg.max_speed_mps * dt)
+        d = np.linalg.norm(idx.kf_center - pos, axis=1)
+        kf = np.flatnonzero(d <= max(fr.near[1], d.min() if len(d) else 0.0))
         if len(kf) == 0:
-            return idx._reloc_rows[:0]
+            fr.near_rows = idx._reloc_rows[:0]
+            return
         lms = np.unique(np.concatenate([idx.kf_lms[i] for i in kf]))
-        return idx._reloc_rows[np.isin(idx._reloc_rows, lms)]
+        fr.near_rows = idx._reloc_rows[np.isin(idx._reloc_rows, lms)]
 
     def _stretched(self, fr: _Frame) -> _Frame | None:
         """The frame for a second relocalization with its grey levels stretched (``reloc_stretch_*``), or None when they
@@ -1002,7 +1011,7 @@ class PnlLocalizer:
         elif self._near is not None:
             self._near = (*self._near[:3], self._near[3] + 1)  # frames since the hint (its clock without stamps)
         if not self._plausible(r):
-            fr.near_rows = self._near_rows(stamp)
+            self._hinted(fr, stamp)
             r = self._relocalize(fr, tm)
             if not self._plausible(r) and (dim := self._stretched(fr)) is not None:
                 r = self._relocalize(dim, tm)
