@@ -133,7 +133,9 @@ class PnlConfig:
     align_min_corner: float = 0.2  # those extra patches' corner score (0 edge or flat .. 0.5 isotropic corner)
     align_sigma_factor: float = 3.0  # align only from keypoint solutions within this many times the gates ...
     align_min_inlier_frac: float = 0.5  # ... and keep the aligned solution only when this share of the alignments agree
-    exposure_fraction: float = 0.3  # exposure / frame interval assumed for motion blur (indoor video: ~10 ms at 30 fps)
+    exposure_s: float = 0.01  # exposure time assumed for motion blur (indoor video: ~10 ms); with no capture times the
+    #                           frames are taken 1/30 s apart (then 0.3 of the interval). A 10 fps camera's frames are
+    #                           smeared over a tenth of their motion, not 0.3 of it (office walk at 10 fps: 84 -> 86/100)
     blur_min_px: float = 6.0  # direct tracking smears its templates with the predicted motion from this blur on (px at
     #                           640 wide: a sharper camera's pixels are finer, not its blur longer)
     blur_sigma_px: float = 5.0  # ... and a direct pose's covariance grows by blur / this (px at 640 wide) beyond it, as in
@@ -309,6 +311,7 @@ class _Frame:
     inv_sigma2: np.ndarray | None = None  # (N,) 1 / scale^(2 octave)
     gray: np.ndarray | None = None  # undistorted grey float32, for patch alignment (see PnlLocalizer._gray)
     reason: str | None = None  # why this frame has no pose, when it has none
+    exposure_fraction: float = 0.3  # the exposure over the interval since the last frame (motion blur from the velocity)
     near_rows: np.ndarray | None = None  # relocalization rows of the landmarks within a caller's hint (None: no hint)
     near: tuple[np.ndarray, float] | None = None  # that hint now: (position, how far the camera can be from it)
 
@@ -628,12 +631,12 @@ class PnlLocalizer:
 
     def _blur_deltas(self, fr: _Frame, blur_px: float) -> list | None:
         """The camera's motion over the exposure as camera-frame deltas around the frame's pose, from the velocity
-        (``exposure_fraction`` of the frame interval: P&L gets no timestamps), when its blur ``blur_px``
+        (``exposure_s`` over the frame interval), when its blur ``blur_px``
         (:meth:`_blur_px`) smears ``blur_min_px`` or more."""
         if blur_px < self.cfg.blur_min_px * fr.width / 640:  # (0 without a velocity)
             return None
         ident = Pose.identity()
-        e = self.cfg.exposure_fraction
+        e = fr.exposure_fraction
         n = 7  # odd: the frame's own pose is one of the samples
         out = []
         for f in np.linspace(-e / 2, e / 2, n):
@@ -712,10 +715,10 @@ class PnlLocalizer:
 
     def _blur_px(self, fr: _Frame) -> float:
         """The frame's predicted motion blur (frame pixels) from the velocity over the assumed exposure."""
-        if self._vel is None or self.cfg.exposure_fraction <= 0:
+        if self._vel is None or fr.exposure_fraction <= 0:
             return 0.0
         ident = Pose.identity()
-        return blur_length_px(fr.camera, ident, ident.interpolate(self._vel, self.cfg.exposure_fraction))
+        return blur_length_px(fr.camera, ident, ident.interpolate(self._vel, fr.exposure_fraction))
 
     def _scene_depth(self, T_wc: Pose) -> float | None:
         """The median depth (m) of the local landmarks in front of the camera at ``T_wc``: how far the scene is, for
@@ -965,6 +968,7 @@ class PnlLocalizer:
         status = Status.TRACKING
         r = None
         dt = stamp - self._stamp if stamp is not None and self._stamp is not None and stamp > self._stamp else 1.0 / 30.0
+        fr.exposure_fraction = min(1.0, self.cfg.exposure_s / dt)
         odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
         motion = self.odometry.use(motion)
         self._stamp = stamp

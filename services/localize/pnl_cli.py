@@ -31,4 +31,6 @@ def run_localize_pnl(args) -> int:
                                                readout_s=getattr(args, "rolling_shutter", 0.0) / 1000.0))
     if loc.patches is None:
         log.info("%s has no landmark patches (a map from before them, or from stella_vslam): keypoint measurements only", map_dir)
-    return localize_and_report(loc, seq, args, "pnl", odometry=odometry)
+    # capture times: the frame interval (a 10 fps camera's blur is a tenth of its motion per frame, not 0.3 of it),
+    # the odometry's and the rolling shutter's clock, and a start hint's widening
+    return localize_and_report(loc, seq, args, "pnl", stamped=True, odometry=odometry)
