@@ -44,6 +44,17 @@ class CliError(Exception):
     """An error the user can act on: printed as one line, exit code 2."""
 
 
+def near_arg(values: list[float] | None) -> tuple[tuple[float, float, float], float] | None:
+    """``--near X Y Z R`` as ((x, y, z), radius m), or None when not given; a CliError unless all are finite, R > 0."""
+    if values is None:
+        return None
+    import math
+
+    if not (all(map(math.isfinite, values)) and values[3] > 0):
+        raise CliError(f"--near X Y Z R: a world position and a radius > 0 in metres (got {values})")
+    return (values[0], values[1], values[2]), values[3]
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="cristal",

@@ -165,6 +165,9 @@ def test_localize_pnl_without_map_is_a_clear_error(tmp_path):
     assert r.returncode == 2 and "--map" in r.stdout + r.stderr
     r = _cli("localize", tmp_path, tmp_path, "--method", "rm", "--out", tmp_path / "t.txt")
     assert r.returncode == 2 and "--db" in r.stdout + r.stderr
+    r = _cli("localize", tmp_path, tmp_path, "--method", "pnl", "--map", tmp_path, "--near", "1", "2", "nan", "3",
+             "--out", tmp_path / "t.txt")
+    assert r.returncode == 2 and "--near X Y Z R" in r.stdout + r.stderr  # before the missing map is even looked at
 
 
 def test_localizer_api_seed_and_lost_on_blank_frame(pnl_site, pnl_map):

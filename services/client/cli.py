@@ -81,13 +81,12 @@ class _Camera:
 def run_stream(args) -> int:
     from pathlib import Path
 
-    from services.cli import CliError, emit_summary
+    from services.cli import CliError, emit_summary, near_arg
     from services.client.client import LocalizationClient
 
     if not 0 <= args.rolling_shutter <= 200:
         raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
-    if args.near is not None and not (all(map(__import__("math").isfinite, args.near)) and args.near[3] > 0):
-        raise CliError(f"--near X Y Z R: a world position and a radius > 0 in metres (got {args.near})")
+    near = near_arg(args.near)
     from services.client.fallback import load_local
     from services.client.stream import sources_path, stream_sequence
     from services.geometry.camera import Camera
@@ -123,7 +122,7 @@ def run_stream(args) -> int:
             fallback = load_local(d)
         traj, st = stream_sequence(seq, client, fallback, args.out, frames=args.frames, fps=args.fps, odometry=odometry,
                                    readout_s=args.rolling_shutter / 1000.0 or None,
-                                   near=(tuple(args.near[:3]), args.near[3]) if args.near else None)
+                                   near=near)
     finally:
         client.close()
     s = st.summary()

@@ -240,12 +240,11 @@ def run_build_db(args) -> int:
 
 
 def run_localize(args) -> int:
-    from services.cli import CliError
+    from services.cli import CliError, near_arg
 
     if not 0 <= args.rolling_shutter <= 200:
         raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
-    if args.near is not None and not (all(map(__import__("math").isfinite, args.near)) and args.near[3] > 0):
-        raise CliError(f"--near X Y Z R: a world position and a radius > 0 in metres (got {args.near})")
+    near_arg(args.near)  # (a bad hint fails before anything loads; the runner takes it from args)
     if args.method == "pnl":
         from services.localize.pnl_cli import run_localize_pnl
 

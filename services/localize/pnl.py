@@ -78,6 +78,7 @@ from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas,
 from services.prebuild.patches import PATCH_FILE, LandmarkPatches, corner_scores, map_fingerprint, search_patches
 from services.prebuild.stella_map import StellaMap, read_map
 from services.relocalize.ambiguity import rival
+from services.relocalize.hint import near_hint
 
 __all__ = ["PnlConfig", "PnlResult", "PnlLocalizer", "Status"]
 
@@ -1022,14 +1023,10 @@ class PnlLocalizer:
         if unrolled and motion is None and self._plausible(r) and self.patches is not None:
             r, fr = self._unrolled_again(image, camera, fr, r, move, dt, readout, depth, tm)
         if near is not None and self.T_last is None:
-            pos, radius = np.asarray(near[0], np.float64).reshape(3), float(near[1])
-            if not (np.all(np.isfinite(pos)) and 0 < radius < float("inf")):
-                raise ValueError(f"near: a finite position and a positive radius, not {near!r}")
+            pos, radius = near_hint(near)
             if self._near is None or self._near[1] != radius or not np.array_equal(self._near[0], pos):
-                self._near = (pos, radius, stamp, 0)  # (the same hint again keeps its clock)
-            else:
-                self._near = (*self._near[:3], self._near[3] + 1)
-        elif self._near is not None:
+                self._near = (pos, radius, stamp, -1)  # (the same hint again keeps its clock)
+        if self._near is not None:
             self._near = (*self._near[:3], self._near[3] + 1)  # frames since the hint (its clock without stamps)
         if not self._plausible(r):
             self._hinted(fr, stamp)

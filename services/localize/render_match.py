@@ -69,6 +69,7 @@ from services.localize.direct import DirectConfig, align_and_solve, undistorted_
 from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
+from services.relocalize.hint import near_hint
 from services.render.depth_sampling import plane_normals, support_fraction
 
 __all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "normalised_gray", "refine_matches_lk"]
@@ -932,9 +933,7 @@ class RenderMatchTracker:
         if prior is not None and self.T_last is None:
             self.T_last = prior
         if near is not None and self.T_last is None:
-            pos, radius = np.asarray(near[0], np.float64).reshape(3), float(near[1])
-            if not (np.all(np.isfinite(pos)) and 0 < radius < float("inf")):
-                raise ValueError(f"near: a finite position and a positive radius, not {near!r}")
+            pos, radius = near_hint(near)
             a = self.anchor
             if a is None or not a.hint or a.radius != radius or not np.array_equal(a.position, pos):
                 self.anchor = _Anchor(pos, stamp, None, radius, hint=True)  # (the same hint again keeps its clock)

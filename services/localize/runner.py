@@ -108,14 +108,14 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
 def localize_and_report(loc, seq, args, method: str, stamped: bool = False, after=None, odometry=None) -> int:
     """``cristal localize``'s output contract for either method; exit code 0 when any frame got a pose.
     ``after(traj) -> dict``: a check run on the trajectory once timed (its fields join the summary)."""
-    from services.cli import emit_summary
+    from services.cli import emit_summary, near_arg
     from services.io.trajectory import write_tum
     from services.localize.backfill import BackfillStats
     from services.localize.status import Status
 
     n = min(len(seq), args.frames or len(seq))
     back = BackfillStats() if getattr(args, "backfill", False) else None
-    near = (tuple(args.near[:3]), args.near[3]) if getattr(args, "near", None) else None
+    near = near_arg(getattr(args, "near", None))
     traj, counts, stage, dt, why, interrupted = localize_sequence(loc, seq, n, stamped=stamped, odometry=odometry,
                                                                   backfill=back, near=near)
     if interrupted:
