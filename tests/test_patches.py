@@ -154,3 +154,44 @@ def test_sample_patches_takes_more_patches_than_one_opencv_remap_can():
         x, y = int(uv[k, 0]), int(uv[k, 1])
         np.testing.assert_array_equal(p[k], img[y - 11:y + 12, x - 11:x + 12].astype(np.float32))
     assert sample_patches(img, np.zeros((0, 2)), 23).shape == (0, 23, 23)
+
+
+@pytest.mark.parametrize("live_m, factor", [(3.0, 1.0), (1.2, 2.5), (9.0, 1.5 ** 1.5)])
+def test_a_patch_seen_nearer_or_much_further_than_its_keyframe_weighs_less(live_m, factor):
+    """A wall 3 m in front of the source keyframe, seen by the live camera from 1.2 m (the template stretched 2.5x:
+    the keyframe never saw the detail that places it), from 3 m (its own scale) and from 9 m (shrunk 3x: aliased).
+    warp_noise_factor says how much noisier each alignment is (1/s_min x max(1, s_max / 2)^1.5), and with
+    warp_noise_ref the alignments' information shrinks by (ref / factor)^2. At 1.2 m the alignments at the true
+    pose do err more than at 3 m: the premise of the weighting, measured on exact images of the same texture."""
+    from services.prebuild.patches import _homographies, warp_noise_factor
+
+    tex = _texture(3)
+    n, d = np.array([0.0, 0.0, -1.0]), -3.0  # the plane z = 3 (normal towards the source camera)
+    src = Pose.identity()
+    img_src = _image(tex, src, n, d)
+    rng = np.random.default_rng(2)
+    uv_src = rng.uniform([60, 60], [CAM.width - 60, CAM.height - 60], (40, 2))
+    P = np.column_stack([(uv_src[:, 0] - CAM.cx) / CAM.fx, (uv_src[:, 1] - CAM.cy) / CAM.fy, np.ones(len(uv_src))]) * 3.0
+    T_cw = src.inverse()
+    lp = LandmarkPatches(np.arange(len(P)), np.clip(sample_patches(img_src, uv_src, 23) + 0.5, 0, 255).astype(np.uint8),
+                         np.tile(-n, (len(P), 1)), np.zeros(len(P), np.int64), np.column_stack([T_cw.R, T_cw.t])[None],
+                         CAM.K)
+
+    def aligned(distance):
+        live = Pose.from_rotvec_t(np.zeros(3), [0.02, -0.01, 3.0 - distance])
+        L = live.inverse()
+        uv, _ = CAM.project(L.transform(P))
+        seen = np.all((uv > 20) & (uv < [CAM.width - 20, CAM.height - 20]), axis=1)  # inside the view, off its edge
+        truth = uv[seen]
+        q, ok, info = align_to_patches(lp, np.flatnonzero(seen), P[seen], L.R, L.t, CAM.K, _image(tex, live, n, d))
+        f = warp_noise_factor(_homographies(lp, np.flatnonzero(seen), P[seen], L.R, L.t, CAM.K), truth)
+        _, _, info_w = align_to_patches(lp, np.flatnonzero(seen), P[seen], L.R, L.t, CAM.K, _image(tex, live, n, d),
+                                        warp_noise_ref=1.6)
+        return np.linalg.norm(q[ok] - truth[ok], axis=1), f, info, info_w
+
+    err, f, info, info_w = aligned(live_m)
+    assert np.allclose(f, factor, rtol=0.03), (f.min(), f.max(), factor)
+    assert np.allclose(info_w, info * (1.6 / f[:, None, None]) ** 2)
+    if live_m == 1.2:
+        err_own, _, _, _ = aligned(3.0)
+        assert len(err) >= 10 and np.median(err) > 2 * np.median(err_own), (np.median(err), np.median(err_own))

@@ -35,6 +35,7 @@ class DirectConfig:
     min_inliers: int = 15
     min_inlier_frac: float = 0.5  # of the converged alignments, this share must agree with the pose
     max_moved_px: float | None = None  # from a keypoint pose: the projections may move at most this far (median)
+    warp_noise_ref: float = 0.0  # > 0: weigh each alignment by its warp (services.prebuild.patches.warp_noise_factor)
 
 
 @dataclass
@@ -213,7 +214,7 @@ def align_and_solve(lp: LandmarkPatches, pidx: np.ndarray, P: np.ndarray, R: np.
     out, step = None, (float("inf"), float("inf"))
     for _ in range(cfg.passes):
         poses = [(Rd @ R, Rd @ t + td) for Rd, td in blur] if blur else None
-        q, ok, info = align_to_patches(lp, pidx, P, R, t, K, gray, blur=poses)
+        q, ok, info = align_to_patches(lp, pidx, P, R, t, K, gray, blur=poses, warp_noise_ref=cfg.warp_noise_ref)
         if ok.sum() < cfg.min_inliers:
             break
         R2, t2, inl, rmse = solve_motion_only(P[ok], q[ok], info[ok] * w, K, R, t, rounds=(4, 2))
