@@ -8,10 +8,11 @@ the occluded office and sent the survey-density warehouse 28.6 m into a look-ali
 localize` over each site of ROOT that has a walk (SITE/seq_00) and the method's input: Render & Match with
 SITE/reloc.npz (`--no-camera-check`), Prebuild & Localize with SITE/map. Images only, first frame cold. For each
 it prints frames localized, APE with no alignment, the frames reported beyond 5 cm or 1 degree of the truth ("off",
-which must stay 0), and the change against the baseline file. A row is a regression when it loses more than
---tolerance frames, reports a frame off that the baseline did not, or its translation APE grows by more than 15 %
-+ 0.05 cm; the exit status is then 1. --update writes this run's numbers as the new baseline (commit it with the
-change that moved them).
+which must stay 0), the poses whose error exceeds 3 times the 1-sigma they were reported with ("> 3σ", from the
+localizer's TRAJ.frames.csv: how honest its uncertainty is; not judged), and the change against the baseline
+file. A row is a regression when it loses more than --tolerance frames, reports a frame off that the baseline did
+not, or its translation APE grows by more than 15 % + 0.05 cm; the exit status is then 1. --update writes this
+run's numbers as the new baseline (commit it with the change that moved them).
 
 Sites come from `python benchmarks/sim.py` and the presets named in benchmarks/RESULTS.md; databases from `cristal
 build-db`, maps from `cristal prebuild`. A full sweep of the ten walks takes ~20 minutes on 2 cores.
@@ -30,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from services.io.frame_log import frame_log_path, read_frame_log  # noqa: E402
 from services.io.trajectory import read_tum  # noqa: E402
 
 OFF_M, OFF_DEG = 0.05, 1.0
@@ -60,11 +62,15 @@ def run(site: Path, method: str, out: Path) -> dict:
         raise RuntimeError(f"{' '.join(cmd[3:])} failed:\n{res.stderr[-2000:]}")
     s = json.loads(res.stdout.strip().splitlines()[-1])
     gt = read_tum(site / "seq_00" / "groundtruth.txt").as_dict()
-    err = np.array([gt[k].distance_to(T) for k, T in read_tum(out).as_dict().items() if k in gt]).reshape(-1, 2)
+    est = read_tum(out).as_dict()
+    err = np.array([gt[k].distance_to(T) for k, T in est.items() if k in gt]).reshape(-1, 2)
+    log = read_frame_log(frame_log_path(out))  # each pose's predicted 1-sigma: how many poses exceed 3 of theirs
+    sig = np.array([(log[k].sigma_m, log[k].sigma_deg) for k in est if k in gt]).reshape(-1, 2)
     return {"frames": int(s["frames"]), "localized": int(s["localized"]),
             "ape_cm": round(100 * s["ape_none_trans_rmse_m"], 3), "ape_deg": round(s["ape_none_rot_rmse_deg"], 4),
-            "off": int(((err[:, 0] > OFF_M) | (err[:, 1] > OFF_DEG)).sum()), "fps": round(s["fps"], 1),
-            "wall_s": round(time.perf_counter() - t0, 1)}
+            "off": int(((err[:, 0] > OFF_M) | (err[:, 1] > OFF_DEG)).sum()),
+            "beyond_3sigma": int(((err[:, 0] > 3 * sig[:, 0]) | (err[:, 1] > 3 * sig[:, 1])).sum()),
+            "fps": round(s["fps"], 1), "wall_s": round(time.perf_counter() - t0, 1)}
 
 
 def verdict(now: dict, base: dict | None, tolerance: int) -> str:
@@ -97,8 +103,8 @@ def main() -> int:
     base = json.loads(args.baseline.read_text()) if args.baseline.is_file() else {}
     args.out.mkdir(parents=True, exist_ok=True)
     now, bad = {}, 0
-    print("| site | method | frames | APE cm / deg | off | FPS | baseline | verdict |")
-    print("|---|---|---:|---|---:|---:|---|---|")
+    print("| site | method | frames | APE cm / deg | off | > 3σ | FPS | baseline | verdict |")
+    print("|---|---|---:|---|---:|---:|---:|---|---|")
     for name in names:
         for method in args.methods:
             site = args.root / name
@@ -111,7 +117,7 @@ def main() -> int:
             bad += v.startswith("**REGRESSION")
             was = "-" if b is None else f"{b['localized']}, {b['ape_cm']:.2f} / {b['ape_deg']:.3f}, {b['off']} off"
             print(f"| {name} | {method} | {r['localized']}/{r['frames']} | {r['ape_cm']:.2f} / {r['ape_deg']:.3f} | "
-                  f"{r['off']} | {r['fps']:.1f} | {was} | {v} |", flush=True)
+                  f"{r['off']} | {r['beyond_3sigma']} | {r['fps']:.1f} | {was} | {v} |", flush=True)
     if args.update:
         merged = {**base, **now}
         tmp = args.baseline.with_suffix(".tmp")

@@ -206,3 +206,29 @@ def test_cli_errors_exit_2(tmp_path, main):
     assert main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "other.txt")]) == 2
     assert main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "other.txt"), "--lenient"]) == 2  # no match
     assert main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "gt.txt"), "--scan", "x.ply"]) == 2  # no --plots
+
+
+def test_cli_eval_weighs_errors_against_the_predicted_uncertainty(tmp_path, capsys, main):
+    """With est.frames.csv beside the estimate (what `cristal localize` writes), eval counts the poses whose error
+    exceeds 3 times the 1-sigma they were reported with: here every pose is 10 cm off, 40 claimed 5 cm (within 3
+    sigma) and 8 claimed 1 cm (beyond), and 2 LOST frames have none."""
+    from services.io.frame_log import FrameRecord, frame_log_path, write_frame_log
+
+    gt = walk(50)
+    est = perturb(gt, Pose(np.eye(3), [0.1, 0, 0]), drop={3, 4})
+    write_tum(tmp_path / "gt.txt", gt)
+    write_tum(tmp_path / "est.txt", est)
+    recs = [FrameRecord(s, "LOST", reason="no place") if i in (3, 4) else
+            FrameRecord(s, "TRACKING", 100, 0.8, 0.01 if i >= 42 else 0.05, 1.0) for i, s in enumerate(gt.stamps)]
+    write_frame_log(frame_log_path(tmp_path / "est.txt"), recs)
+    rc = main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--align", "se3", "--plots",
+               str(tmp_path / "plots")])
+    out = capsys.readouterr().out
+    s = json.loads(out.strip().splitlines()[-1])
+    assert rc == 0 and s["uncertainty_n"] == 48 and s["uncertainty_beyond_3sigma"] == 8, s  # (in the scan frame)
+    assert s["uncertainty_t_ratio_median"] == pytest.approx(2.0) and "8 beyond 3 sigma" in out
+    assert (tmp_path / "plots" / "uncertainty.png").stat().st_size > 10_000
+    # a log that is not one: a clear error, exit 2
+    (tmp_path / "x.csv").write_text("stamp,pose\n1,2\n")
+    assert main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--frame-log", str(tmp_path / "x.csv")]) == 2
+    assert "not a frame log" in capsys.readouterr().err

@@ -72,9 +72,31 @@ def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
     # patch alignment: 0.3-0.4 cm / 0.06-0.07 deg here (ORB keypoints alone: 2.9 cm / 0.38 deg)
     assert a.trans_rmse < 0.015 and a.rot_rmse_deg < 0.25, (a.trans_rmse, a.rot_rmse_deg)
     assert s.get("direct_ms", 0) > 0  # direct tracking by default; --no-direct: ORB on every frame
+    _check_frame_log(traj_path, seq, est, tmp_path)
     r = _cli("localize", mapdir, out / "seq", "--method", "pnl", "--map", mapdir, "--out", traj_path, "--no-direct")
     s = json.loads(r.stdout.strip().splitlines()[-1])
     assert r.returncode == 0 and "direct_ms" not in s and s["localized"] >= 7, r.stdout + r.stderr
+
+
+def _check_frame_log(traj_path, seq, est, tmp_path):
+    """TRAJ.frames.csv has every frame in order; a pose exactly where the status is not LOST, each with the 1-sigma
+    that passed the gates; and `cristal eval` weighs the errors against those 1-sigmas (uncertainty.png)."""
+    import json
+
+    from services.io.frame_log import frame_log_path, read_frame_log
+
+    log = read_frame_log(frame_log_path(traj_path))
+    assert list(log) == seq.stamps
+    posed = set(est.stamps)
+    assert {k for k, r in log.items() if r.status != "LOST"} == posed
+    for k in posed:
+        assert 0 < log[k].sigma_m <= 0.01 and 0 < log[k].sigma_deg <= 0.1 and log[k].inliers >= 30, log[k]
+    assert all(r.reason for r in log.values() if r.status == "LOST")
+    r = _cli("eval", seq.root / "groundtruth.txt", traj_path, "--align", "none", "--plots", tmp_path / "plots")
+    assert r.returncode == 0, r.stdout + r.stderr
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert s["uncertainty_n"] == len(posed) and 0 <= s["uncertainty_beyond_3sigma"] <= len(posed), s
+    assert 0 < s["uncertainty_t_ratio_median"] < 10 and (tmp_path / "plots" / "uncertainty.png").stat().st_size > 10_000
 
 
 def test_localize_goes_on_past_broken_frames(pnl_site, pnl_map, tmp_path):
@@ -95,6 +117,11 @@ def test_localize_goes_on_past_broken_frames(pnl_site, pnl_map, tmp_path):
     s = json.loads(r.stdout.strip().splitlines()[-1])
     assert s["frames"] == 8 and s["lost_reasons"].get("unreadable image") == 2, s
     assert s["localized"] == 6 and traj_path.read_text().count("\n") >= 6, s
+    from services.io.frame_log import frame_log_path, read_frame_log
+
+    log = list(read_frame_log(frame_log_path(traj_path)).values())
+    assert len(log) == 8 and [r.status for r in log].count("LOST") == 2, log
+    assert log[2].reason.startswith("unreadable image") and log[5].reason.startswith("unreadable image")
 
 
 def test_ctrl_c_keeps_the_frames_localized_so_far(pnl_site, pnl_map, tmp_path, capsys):

@@ -21,7 +21,8 @@ import numpy as np
 from services.geometry.se3 import Pose
 from services.io.trajectory import Trajectory
 
-__all__ = ["ALIGNMENTS", "ApeResult", "DegenerateAlignment", "umeyama", "associate", "compute_ape", "evaluate"]
+__all__ = ["ALIGNMENTS", "ApeResult", "DegenerateAlignment", "umeyama", "associate", "compute_ape", "evaluate",
+           "uncertainty_check"]
 
 log = logging.getLogger(__name__)
 
@@ -185,3 +186,25 @@ def ape_first_frames(gt: Trajectory, est: Trajectory, n: int) -> tuple[str, dict
     line = (f"APE (no alignment): translation RMSE {100 * a.trans_rmse:.2f} cm, rotation RMSE {a.rot_rmse_deg:.3f} deg, "
             f"{a.fraction:.1%} of frames")
     return line, {"ape_none_trans_rmse_m": a.trans_rmse, "ape_none_rot_rmse_deg": a.rot_rmse_deg, "fraction": a.fraction}
+
+
+def uncertainty_check(result: ApeResult, records: dict) -> dict:
+    """How the errors of ``result`` (alignment "none": the scan frame the poses claim) compare with the 1-sigma each
+    pose was reported with (``records``: services.io.frame_log.read_frame_log). An honest localizer has about 0.3 %
+    of its poses beyond 3 sigma in both translation and rotation if its errors were Gaussian as predicted.
+    Returns {"n": poses with a predicted sigma, "beyond_3sigma": how many exceed it in either, "beyond_3sigma_stamps",
+    "t_ratio_median" / "r_ratio_median": median error / sigma, and per pose "t_err_m", "r_err_deg", "sigma_m",
+    "sigma_deg" arrays (for the plot)}."""
+    if result.align != "none":
+        raise ValueError("the predicted uncertainty is in the scan frame: use the 'none' alignment's result")
+    keep = [i for i, s in enumerate(result.stamps)
+            if s in records and np.isfinite(records[s].sigma_m) and np.isfinite(records[s].sigma_deg)]
+    sm = np.array([records[result.stamps[i]].sigma_m for i in keep], float)
+    sd = np.array([records[result.stamps[i]].sigma_deg for i in keep], float)
+    te, re = result.trans_err[keep], result.rot_err_deg[keep]
+    beyond = (te > 3 * sm) | (re > 3 * sd)
+    return {"n": len(keep), "beyond_3sigma": int(beyond.sum()),
+            "beyond_3sigma_stamps": [result.stamps[keep[i]] for i in np.flatnonzero(beyond)],
+            "t_ratio_median": float(np.median(te / np.maximum(sm, 1e-12))) if keep else float("nan"),
+            "r_ratio_median": float(np.median(re / np.maximum(sd, 1e-12))) if keep else float("nan"),
+            "t_err_m": te, "r_err_deg": re, "sigma_m": sm, "sigma_deg": sd}

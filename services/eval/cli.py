@@ -11,6 +11,11 @@ examples:
   cristal eval gt.txt est.txt --plots plots/ --scan site/scan.ply  + trajectory.png (over the scan), errors_<align>.png
   cristal eval gt.txt est.txt --json ape.json                      + full results per alignment as JSON
 
+Uncertainty: `cristal localize --out est.txt` also writes est.frames.csv (every frame's status,
+inliers and predicted 1-sigma). When it is there (or given with --frame-log), eval also counts the
+poses whose error exceeds 3 times the 1-sigma they were reported with (in the scan frame, no
+alignment), and with --plots draws uncertainty.png: error against predicted 1-sigma.
+
 Frames are matched by their exact timestamp text; an estimated timestamp missing from the
 ground truth is an error (use --lenient to ignore such frames). 'fraction' is the share of
 ground-truth frames that got a pose. Numbers equal evo_ape's (translation_part and
@@ -31,6 +36,8 @@ def register(sub) -> None:
     p.add_argument("--plots", metavar="DIR", help="write trajectory.png and errors_<align>.png here")
     p.add_argument("--json", metavar="FILE", help="write the results (summary per alignment) as JSON")
     p.add_argument("--lenient", action="store_true", help="ignore estimated frames whose timestamp is not in the ground truth")
+    p.add_argument("--frame-log", metavar="CSV", help="per-frame log with each pose's predicted 1-sigma (default: "
+                                                       "EST.frames.csv beside the estimate, when there)")
     p.set_defaults(func=run)
 
 
@@ -50,6 +57,31 @@ def _table(results) -> None:
     if not console.is_terminal:  # a pipe or log file: no reason to wrap the headers at 80 columns
         console.width = max(console.width, 100)
     console.print(t)
+
+
+def _uncertainty(args, gt, est, results) -> dict | None:
+    """services.eval.ape.uncertainty_check against the frame log (--frame-log, else EST.frames.csv when it exists);
+    None without one. Prints a line."""
+    from services.cli import CliError
+    from services.eval.ape import compute_ape, uncertainty_check
+    from services.io.frame_log import FrameLogError, frame_log_path, read_frame_log
+
+    path = args.frame_log or frame_log_path(args.est)
+    if args.frame_log is None and not path.is_file():
+        return None
+    try:
+        records = read_frame_log(path)
+    except FrameLogError as e:
+        raise CliError(str(e)) from None
+    none = results.get("none") or compute_ape(gt, est, "none", strict=not args.lenient)
+    c = uncertainty_check(none, records)
+    if c["n"]:
+        print(f"predicted uncertainty ({path}): {c['n']} poses with a 1-sigma; error / 1-sigma median "
+              f"{c['t_ratio_median']:.2f} (centre), {c['r_ratio_median']:.2f} (orientation); "
+              f"{c['beyond_3sigma']} beyond 3 sigma ({100 * c['beyond_3sigma'] / c['n']:.1f} %)")
+    else:
+        print(f"predicted uncertainty ({path}): no pose with a 1-sigma")
+    return c
 
 
 def run(args) -> int:
@@ -83,8 +115,11 @@ def run(args) -> int:
         if name == "sim3":
             summary["ape_sim3_scale"] = r.scale
 
+    check = _uncertainty(args, gt, est, results)
+    if check is not None:
+        summary.update({f"uncertainty_{k}": check[k] for k in ("n", "beyond_3sigma", "t_ratio_median", "r_ratio_median")})
     if args.plots:
-        from services.eval.plots import plot_errors, plot_trajectory_topdown
+        from services.eval.plots import plot_errors, plot_trajectory_topdown, plot_uncertainty
 
         scan = None
         if args.scan:
@@ -95,6 +130,8 @@ def run(args) -> int:
         files = [plot_trajectory_topdown(gt, est, out / "trajectory.png", scan=scan,
                                          title=f"{Path(args.est).name} vs {Path(args.gt).name} (top view)")]
         files += [plot_errors(r, out / f"errors_{name}.png") for name, r in results.items()]
+        if check is not None and check["n"]:
+            files.append(plot_uncertainty(check, out / "uncertainty.png"))
         print("plots: " + ", ".join(str(f) for f in files))
         summary["plots"] = [str(f) for f in files]
     if args.json:

@@ -1,4 +1,5 @@
-"""Evaluation plots: trajectories seen from above (over the scan) and errors over time.
+"""Evaluation plots: trajectories seen from above (over the scan), errors over time, errors against the predicted
+uncertainty.
 
 Rendered with matplotlib's Agg canvas (no display, no pyplot global state) and written
 atomically as PNG.
@@ -20,7 +21,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from services.eval.ape import ApeResult
     from services.io.scan import Scan
 
-__all__ = ["plot_trajectory_topdown", "plot_errors"]
+__all__ = ["plot_trajectory_topdown", "plot_errors", "plot_uncertainty"]
 
 log = logging.getLogger(__name__)
 
@@ -132,4 +133,37 @@ def plot_errors(result: "ApeResult", out_png: str | Path, title: str | None = No
     ax2.set_xlabel("time since first ground-truth frame (s)")
     ax1.set_title(title or f"APE, alignment {result.align}: {result.n_matched}/{result.n_gt} frames "
                   f"({100 * result.fraction:.1f} %) with a pose")
+    return _save(fig, out_png)
+
+
+def plot_uncertainty(check: dict, out_png: str | Path, gates: tuple[float, float] = (0.01, 0.1),
+                     title: str | None = None) -> Path:
+    """Each pose's error against the 1-sigma it was reported with (services.eval.ape.uncertainty_check), translation
+    and rotation, log-log: an honest localizer keeps its points under the 3-sigma line; the dotted line is the gate
+    a pose's sigma must pass to be reported (``gates``: metres, degrees)."""
+    fig = _figure(10, 4.6)
+    axes = fig.subplots(1, 2)
+    beyond = (check["t_err_m"] > 3 * check["sigma_m"]) | (check["r_err_deg"] > 3 * check["sigma_deg"])
+    for ax, err, sig, gate, scale, unit, name in (
+            (axes[0], check["t_err_m"], check["sigma_m"], gates[0], 100.0, "cm", "camera centre"),
+            (axes[1], check["r_err_deg"], check["sigma_deg"], gates[1], 1.0, "deg", "orientation")):
+        e, s = np.maximum(err * scale, 1e-4 * scale), sig * scale
+        ax.scatter(s[~beyond], e[~beyond], s=8, color=GT_COLOR, alpha=0.6, label="within 3 sigma (both)")
+        ax.scatter(s[beyond], e[beyond], s=14, color=EST_COLOR, label=f"beyond 3 sigma ({int(beyond.sum())})")
+        if len(s):
+            lo = max(min(float(s.min()), float(e.min())) / 2, 1e-4 * scale)
+            hi = max(float(s.max()), float(e.max()), gate * scale) * 2
+            x = np.array([lo, hi])
+            ax.plot(x, x, "k-", lw=0.8, label="error = 1 sigma")
+            ax.plot(x, 3 * x, "k--", lw=0.8, label="3 sigma")
+            ax.set_xlim(lo, hi)
+            ax.set_ylim(lo, hi)
+        ax.axvline(gate * scale, color=LOST_COLOR, ls=":", lw=1.0, label=f"reporting gate {gate * scale:g} {unit}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(f"predicted 1-sigma, {name} ({unit})")
+        ax.set_ylabel(f"error, {name} ({unit})")
+        ax.grid(True, which="both", lw=0.3, alpha=0.5)
+        ax.legend(loc="upper left", fontsize=8, framealpha=0.85)
+    fig.suptitle(title or f"error against predicted uncertainty: {check['n']} poses, {int(beyond.sum())} beyond 3 sigma")
     return _save(fig, out_png)

@@ -28,10 +28,13 @@ examples:
   cristal localize scan.ply robot/ --method rm --db db.npz --out traj.txt --near 12.5 3.0 1.2 3    started within 3 m
                                                                               of its dock (a site of look-alike aisles)
 
-Writes a TUM trajectory (camera-to-world in the scan frame; frames without a pose are absent),
-prints frames localized, relocalizations and FPS per stage, the LOST frames by reason (Render & Match:
-"ambiguous place" in a repetitive site, where a prior would help; "pose too uncertain to report"; ...)
-and, when the sequence has a groundtruth.txt, the APE against it. Ends with a one-line JSON summary.
+Writes a TUM trajectory (camera-to-world in the scan frame; frames without a pose are absent) and,
+beside it, TRAJ.frames.csv: every frame's status, inliers, predicted 1-sigma (cm, deg: what a filter
+fusing the poses should weigh them by) and why a LOST frame has no pose ('cristal eval' checks the
+1-sigmas against ground truth). Prints frames localized, relocalizations and FPS per stage, the LOST
+frames by reason (Render & Match: "ambiguous place" in a repetitive site, where a prior would help;
+"pose too uncertain to report"; ...) and, when the sequence has a groundtruth.txt, the APE against
+it. Ends with a one-line JSON summary.
 """
 
 

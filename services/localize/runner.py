@@ -25,19 +25,21 @@ def _png(image) -> bytes:
 
 
 def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamped: bool = False, odometry=None,
-                      backfill=None, near=None):
+                      backfill=None, near=None, records: list | None = None):
     """Run a localizer over the first ``n`` frames (``stamped``: pass each frame's capture time, which
     Render & Match uses for constant velocity and motion blur; ``odometry``: the device's own trajectory
     (services.io.trajectory.Trajectory, any world frame), passed as each frame's ``motion`` since the previous
     frame where both have one; ``backfill``: a services.localize.backfill.BackfillStats to run the offline backward
     pass and count into; ``near``: (position, radius m) where the first frame was taken, roughly, passed to the
-    localizer with it). Returns (trajectory, status counts of the forward pass, mean ms per stage of the forward
-    pass, seconds of both passes, LOST frames per reason in the forward pass, interrupted): Ctrl-C ends the pass
-    early and keeps the frames localized so far (no backward pass then)."""
+    localizer with it; ``records``: a list to append each frame's services.io.frame_log.FrameRecord to). Returns
+    (trajectory, status counts of the forward pass, mean ms per stage of the forward pass, seconds of both passes,
+    LOST frames per reason in the forward pass, interrupted): Ctrl-C ends the pass early and keeps the frames
+    localized so far (no backward pass then)."""
     import cv2
     import numpy as np
 
     from protocol.messages import reason_kind
+    from services.io.frame_log import FrameRecord
     from services.io.trajectory import Trajectory, relative_motions
     from services.localize.status import Status
     from services.log import progress, progress_bar
@@ -63,6 +65,8 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
                 counts[Status.LOST] += 1
                 why["unreadable image"] = why.get("unreadable image", 0) + 1
                 unreadable.add(i)
+                if records is not None:
+                    records.append(FrameRecord(frame.stamp, Status.LOST.name, reason=f"unreadable image: {frame.problem}"))
                 continue
             hint = {"near": near} if near is not None and i == 0 else {}
             r = loc.process(frame.image, seq.camera, stamp=stamps[i], motion=None if motions is None else motions[i],
@@ -74,6 +78,9 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
             for k, v in r.timings.items():
                 stage[k] = stage.get(k, 0.0) + v
             poses[i] = r.T_wc
+            if records is not None:
+                records.append(FrameRecord(frame.stamp, r.status.name, int(r.inliers), float(r.rmse_px),
+                                           float(r.sigma_m), float(r.sigma_deg), reason or ""))
             if backfill is not None and seq.files is None:  # a video: no going back to its frames
                 if i > 0 and (poses[i] is None) != (poses[i - 1] is None) and i - 1 not in kept:
                     kept[i - 1] = _png(prev)
@@ -98,6 +105,11 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
 
         with progress_bar("backward pass", total=sum(p is None for p in poses), unit="frame") as bar:
             backward(loc, image, seq.camera, poses, stamps, motions, progress=bar.update, stats=backfill)
+        if records is not None:  # (records and poses are both in frame order, one each)
+            base = len(records) - len(poses)
+            for i, T in enumerate(poses):
+                if T is not None and records[base + i].status == Status.LOST.name:
+                    records[base + i] = FrameRecord(records[base + i].stamp, "BACKFILLED")
     traj = Trajectory()
     for stamp, T in zip(seq.stamps, poses):
         if T is not None:
@@ -109,6 +121,7 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     """``cristal localize``'s output contract for either method; exit code 0 when any frame got a pose.
     ``after(traj) -> dict``: a check run on the trajectory once timed (its fields join the summary)."""
     from services.cli import emit_summary, near_arg
+    from services.io.frame_log import frame_log_path, write_frame_log
     from services.io.trajectory import write_tum
     from services.localize.backfill import BackfillStats
     from services.localize.status import Status
@@ -116,15 +129,17 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     n = min(len(seq), args.frames or len(seq))
     back = BackfillStats() if getattr(args, "backfill", False) else None
     near = near_arg(getattr(args, "near", None))
+    records: list = []
     traj, counts, stage, dt, why, interrupted = localize_sequence(loc, seq, n, stamped=stamped, odometry=odometry,
-                                                                  backfill=back, near=near)
+                                                                  backfill=back, near=near, records=records)
     if interrupted:
         print(f"interrupted: the first {sum(counts.values())} of {n} frames only")
         n = sum(counts.values())
     write_tum(args.out, traj, header=f"cristal localize --method {method}: camera-to-world in the scan frame")
+    write_frame_log(frame_log_path(args.out), records)  # every frame: status, inliers, predicted 1-sigma, reason
     print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {n - len(traj)} lost), "
           f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
-    summary = {"out": args.out, "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
+    summary = {"out": args.out, "frame_log": str(frame_log_path(args.out)), "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
                **({"interrupted": True} if interrupted else {}),
                "relocalizations": counts[Status.RELOCALIZED], "lost": n - len(traj), "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
