@@ -190,8 +190,10 @@ def ape_first_frames(gt: Trajectory, est: Trajectory, n: int) -> tuple[str, dict
 
 def uncertainty_check(result: ApeResult, records: dict) -> dict:
     """How the errors of ``result`` (alignment "none": the scan frame the poses claim) compare with the 1-sigma each
-    pose was reported with (``records``: services.io.frame_log.read_frame_log). An honest localizer has about 0.3 %
-    of its poses beyond 3 sigma in both translation and rotation if its errors were Gaussian as predicted.
+    pose was reported with (``records``: services.io.frame_log.read_frame_log). The 1-sigmas are the largest axis's,
+    the errors 3-D: Gaussian errors as predicted put at most 2.9 % of the poses beyond 3 sigma in translation (the
+    chi-square of 3 degrees of freedom beyond 9; less for an elongated covariance), as many in rotation, so at most
+    ~6 % in either.
     Returns {"n": poses with a predicted sigma, "beyond_3sigma": how many exceed it in either, "beyond_3sigma_stamps",
     "t_ratio_median" / "r_ratio_median": median error / sigma, and per pose "t_err_m", "r_err_deg", "sigma_m",
     "sigma_deg" arrays (for the plot)}."""
