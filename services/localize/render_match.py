@@ -70,6 +70,7 @@ from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
 from services.relocalize.hint import near_hint
+from services.relocalize.reach import FloorPlan
 from services.render.depth_sampling import plane_normals, support_fraction
 
 __all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "normalised_gray", "refine_matches_lk"]
@@ -204,6 +205,12 @@ class _Anchor:
     velocity: np.ndarray | None  # world velocity then, when tracked (tightens the reach)
     radius: float
     hint: bool = False
+    confirmed: bool = True  # False: a pose found with nothing to say where the camera was (a cold relocalization) that
+    #                         no tracked frame has followed yet. A later relocalization searches the whole database
+    #                         then, not near it: in a site of look-alike aisles a cold frame can fit the wrong one, and
+    #                         searched near it, later frames found the look-alike again (warehouse seed 3: frame 17
+    #                         relocalized 12.8 m off and LOST after it; frame 289, searched near it, 17.1 m off and
+    #                         tracked there for 77 frames)
 
 
 @dataclass
@@ -311,6 +318,7 @@ class RenderMatchTracker:
         self.extractor = extractor
         self.db = db
         self.cfg = cfg
+        self._plan: FloorPlan | None = None  # the scan's obstacles, for where a camera can have walked
         self.relocalizations = 0
         # exposure calibration: per candidate (fraction of the frame interval) the summed share of inliers it got
         self.calib_scores = np.zeros(len(cfg.calib_fractions))
@@ -792,12 +800,14 @@ class RenderMatchTracker:
         return r
 
     def _relocalize(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
-                    reach: tuple[np.ndarray, float] | None = None) -> PnpResult | None:
+                    reach: tuple[np.ndarray, float] | None = None,
+                    walk: tuple[np.ndarray, float] | None = None) -> PnpResult | None:
         """A pose from the database, verified: coarse poses from the best-matching views (one per place), each
         rendered at and matched again until one passes the report gate; refused when two places fit the
         frame about as well (repetitive sites), coarsely or verified. ``near`` = (recent position, radius): search
         only views within reach of it; ``reach`` = (position, radius), else ``near``: refuse a pose beyond it
-        (a bay of identical racks 2-4 m on)."""
+        (a bay of identical racks 2-4 m on); ``walk`` = (position, metres): refuse a pose the camera cannot have walked
+        to from there through the scan's free space (:meth:`_walkable`: the next aisle over)."""
         cfg = self.cfg
         feats = self._live(fr, self._reloc_scale(fr.camera))
         t0 = time.perf_counter()
@@ -847,6 +857,11 @@ class RenderMatchTracker:
                              f"can be ({reach[1]:.1f} m)")
                 log.info("relocalization %s", fr.reason)
                 continue
+            if walk is not None and not self._walkable(walk[0], r.T_wc.t, walk[1]):
+                fr.reason = (f"place out of reach: {np.linalg.norm(r.T_wc.t - walk[0]):.1f} m away, but not within "
+                             f"{walk[1]:.1f} m through the scan's free space")
+                log.info("relocalization %s", fr.reason)
+                continue
             if found is not None and not self._same_place(found[1], r):  # a second place passes too: a repetitive site
                 fr.reason = f"ambiguous place: verified at places {found[1].T_wc.distance_to(r.T_wc)[0]:.1f} m apart"
                 log.info("relocalization %s", fr.reason)
@@ -875,6 +890,17 @@ class RenderMatchTracker:
             fr.reason = f"ambiguous place: {rival}"
             return None
         return r
+
+    def _walkable(self, a: np.ndarray, b: np.ndarray, metres: float) -> bool:
+        """Whether the camera can have walked from ``a`` to ``b`` (world) within ``metres`` through the scan's free space
+        (services.relocalize.reach.FloorPlan, built from the scan on first use: ~1 s for 6 M points)."""
+        if self._plan is None:
+            cloud = self.renderer.cloud
+            xyz = cloud.xyz
+            if not isinstance(xyz, np.ndarray):  # on a torch device: every n-th point to the host
+                xyz = xyz[::max(1, len(cloud) // 4_000_000)].cpu().numpy()
+            self._plan = FloorPlan.from_points(xyz, cloud.origin)
+        return self._plan.walkable_within(a, b, metres)
 
     @staticmethod
     def _same_place(a: PnpResult, b: PnpResult) -> bool:
@@ -929,6 +955,7 @@ class RenderMatchTracker:
         status = Status.TRACKING
         r: PnpResult | None = None
         rerendered = False
+        cold = False  # relocalized with nothing to say where the camera was (see _Anchor.confirmed)
         predicted: Pose | None = None  # where the motion model put this frame, when it had a motion
         if prior is not None and self.T_last is None:
             self.T_last = prior
@@ -1009,9 +1036,11 @@ class RenderMatchTracker:
             a = self.anchor
             if a is not None and a.stamp is None:  # a hint given before the clock started: from now on
                 a.stamp = stamp
-            if a is not None and (a.stamp is None or (stamp is not None and 0 <= stamp - a.stamp <= self.cfg.anchor_s)):
+            walk = None  # (where the camera was, how far it can have walked since): through free space
+            if a is not None and a.confirmed and (a.stamp is None or (stamp is not None and 0 <= stamp - a.stamp <= self.cfg.anchor_s)):
                 dt = 0.0 if a.stamp is None or stamp is None else stamp - a.stamp
                 near = (a.position, a.radius + self.cfg.max_speed_mps * dt)  # also the reach, unless tightened
+                walk = None if a.hint else near
                 if a.hint:  # the camera is within it; the views it matches best may stand further off (a wall seen
                     #         from across the room: the small test site's best view of a frame stood 2.3 m away)
                     reach, near = near, (a.position, near[1] + self.cfg.hint_view_reach_m)
@@ -1019,11 +1048,12 @@ class RenderMatchTracker:
                     tight = self.cfg.reach_m + 0.5 * self.cfg.max_accel_mps2 * dt * dt
                     if tight < near[1]:
                         reach = (a.position + a.velocity * dt, tight)
-            r = self._relocalize(fr, near, reach)
+            r = self._relocalize(fr, near, reach, walk)
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1
                 rerendered = True
+                cold = near is None
         fr.tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
         if not self._plausible(r):
             if self.T_last is not None:
@@ -1066,7 +1096,9 @@ class RenderMatchTracker:
             if self.motion is not None and status == Status.TRACKING and consecutive:
                 v = (r.T_wc.t - T_prev.t) / self.motion[1]
                 v = v if np.linalg.norm(v) <= self.cfg.max_speed_mps else None
-            self.anchor = _Anchor(r.T_wc.t, stamp, v, 1.0)
+            # confirmed once tracked; a pose re-acquired near the last one keeps that one's standing
+            confirmed = not cold and (status == Status.TRACKING or self.anchor is None or self.anchor.confirmed)
+            self.anchor = _Anchor(r.T_wc.t, stamp, v, 1.0, confirmed=confirmed)
         reason = None
         if not good:
             reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg 1-sigma)"
