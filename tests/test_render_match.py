@@ -350,6 +350,39 @@ def test_tracker_refuses_a_twin_place_and_a_pose_beyond_reach(rm_setup):
     assert tr._relocalize(fr(), None, (G7.t + [2.0, 0, 0], 0.5)) is None
 
 
+def test_a_relocalization_refuses_a_place_the_camera_cannot_have_walked_to(rm_setup):
+    """Warehouse seed 3: a LOST stretch ended in the next aisle over, 6.3 m away in a straight line but behind racks.
+    Searched near a recent pose, the verified place must be reachable on foot within the distance the camera can have
+    covered (services.relocalize.reach.FloorPlan): a wall between the last pose and the frame's place refuses it,
+    the same wall with a way round it within reach does not. And a cold relocalization anchors later searches only
+    once a tracked frame has followed it."""
+    from services.localize.render_match import _Frame
+    from services.relocalize.reach import FloorPlan
+
+    renderer, ext, db, seq, _ = rm_setup
+    f7, G7 = seq.read(7), seq.groundtruth.poses[7]
+    start = G7.t + [1.0, 0.0, 0.0]  # where the camera was a moment ago
+    blocked = np.zeros((50, 50), bool)
+    blocked[:, 27] = True  # a wall 0.4 m past the frame's place, 10 m long, between it and the start
+    tr = RenderMatchTracker(renderer, ext, db)
+    tr._plan = FloorPlan(blocked, G7.t[:2] - 5.0, 0.2)
+    fr = lambda: _Frame(f7.image, seq.camera, {}, None, 0.0, None)  # noqa: E731
+    assert tr._relocalize(fr(), (start, 3.0), None, (start, 3.0)) is None  # 1 m away, behind the wall
+    f = fr()
+    tr._relocalize(f, (start, 3.0), None, (start, 3.0))
+    assert f.reason.startswith("place out of reach") and "free space" in f.reason, f.reason
+    ok = tr._relocalize(fr(), (start, 12.0), None, (start, 12.0))  # round the wall's end: ~11 m
+    assert ok is not None and G7.distance_to(ok.T_wc)[0] < 0.05
+    tr._plan = FloorPlan(np.zeros((50, 50), bool), G7.t[:2] - 5.0, 0.2)  # no wall
+    assert tr._relocalize(fr(), (start, 3.0), None, (start, 3.0)) is not None
+    # a cold relocalization: no anchor for later searches until the next frame tracks from it
+    tr = RenderMatchTracker(renderer, ext, db)
+    r = tr.process(f7.image, seq.camera, stamp=float(f7.stamp))
+    assert r.status == Status.RELOCALIZED and tr.anchor is not None and not tr.anchor.confirmed
+    f8 = seq.read(8)
+    assert tr.process(f8.image, seq.camera, stamp=float(f8.stamp)).status == Status.TRACKING and tr.anchor.confirmed
+
+
 def test_a_cold_frame_needs_a_clear_margin_over_look_alikes_elsewhere(rm_setup):
     """With no recent pose, two places 10 and 20 m away that each fit the frame 60 % as well (aisles of racks like
     this one) make it ambiguous: the simulated warehouse's cold start matched a wrong aisle 12.8 m off with 39
