@@ -28,9 +28,8 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from services.eval.ape import compute_ape, uncertainty_check  # noqa: E402
 from services.io.frame_log import frame_log_path, read_frame_log  # noqa: E402
 from services.io.trajectory import read_tum  # noqa: E402
 
@@ -61,16 +60,12 @@ def run(site: Path, method: str, out: Path) -> dict:
     if res.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd[3:])} failed:\n{res.stderr[-2000:]}")
     s = json.loads(res.stdout.strip().splitlines()[-1])
-    gt = read_tum(site / "seq_00" / "groundtruth.txt").as_dict()
-    est = read_tum(out).as_dict()
-    err = np.array([gt[k].distance_to(T) for k, T in est.items() if k in gt]).reshape(-1, 2)
-    log = read_frame_log(frame_log_path(out))  # each pose's predicted 1-sigma: how many poses exceed 3 of theirs
-    sig = np.array([(log[k].sigma_m, log[k].sigma_deg) for k in est if k in gt]).reshape(-1, 2)
+    a = compute_ape(read_tum(site / "seq_00" / "groundtruth.txt"), read_tum(out), "none", strict=False)
+    check = uncertainty_check(a, read_frame_log(frame_log_path(out)))  # each pose against its own predicted 1-sigma
     return {"frames": int(s["frames"]), "localized": int(s["localized"]),
             "ape_cm": round(100 * s["ape_none_trans_rmse_m"], 3), "ape_deg": round(s["ape_none_rot_rmse_deg"], 4),
-            "off": int(((err[:, 0] > OFF_M) | (err[:, 1] > OFF_DEG)).sum()),
-            "beyond_3sigma": int(((err[:, 0] > 3 * sig[:, 0]) | (err[:, 1] > 3 * sig[:, 1])).sum()),
-            "fps": round(s["fps"], 1), "wall_s": round(time.perf_counter() - t0, 1)}
+            "off": int(((a.trans_err > OFF_M) | (a.rot_err_deg > OFF_DEG)).sum()),
+            "beyond_3sigma": check["beyond_3sigma"], "fps": round(s["fps"], 1), "wall_s": round(time.perf_counter() - t0, 1)}
 
 
 def verdict(now: dict, base: dict | None, tolerance: int) -> str:

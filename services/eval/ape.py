@@ -194,9 +194,9 @@ def uncertainty_check(result: ApeResult, records: dict) -> dict:
     the errors 3-D: Gaussian errors as predicted put at most 2.9 % of the poses beyond 3 sigma in translation (the
     chi-square of 3 degrees of freedom beyond 9; less for an elongated covariance), as many in rotation, so at most
     ~6 % in either.
-    Returns {"n": poses with a predicted sigma, "beyond_3sigma": how many exceed it in either, "beyond_3sigma_stamps",
-    "t_ratio_median" / "r_ratio_median": median error / sigma, and per pose "t_err_m", "r_err_deg", "sigma_m",
-    "sigma_deg" arrays (for the plot)}."""
+    Returns {"n": poses with a predicted sigma, "beyond_3sigma": how many exceed 3 sigma in either,
+    "t_ratio_median" / "r_ratio_median": median error / sigma, and per pose the arrays "t_err_m", "r_err_deg",
+    "sigma_m", "sigma_deg" and "beyond" (a mask: for the plot)}."""
     if result.align != "none":
         raise ValueError("the predicted uncertainty is in the scan frame: use the 'none' alignment's result")
     keep = [i for i, s in enumerate(result.stamps)
@@ -205,8 +205,7 @@ def uncertainty_check(result: ApeResult, records: dict) -> dict:
     sd = np.array([records[result.stamps[i]].sigma_deg for i in keep], float)
     te, re = result.trans_err[keep], result.rot_err_deg[keep]
     beyond = (te > 3 * sm) | (re > 3 * sd)
-    return {"n": len(keep), "beyond_3sigma": int(beyond.sum()),
-            "beyond_3sigma_stamps": [result.stamps[keep[i]] for i in np.flatnonzero(beyond)],
+    return {"n": len(keep), "beyond_3sigma": int(beyond.sum()), "beyond": beyond,
             "t_ratio_median": float(np.median(te / np.maximum(sm, 1e-12))) if keep else float("nan"),
             "r_ratio_median": float(np.median(re / np.maximum(sd, 1e-12))) if keep else float("nan"),
             "t_err_m": te, "r_err_deg": re, "sigma_m": sm, "sigma_deg": sd}

@@ -143,7 +143,7 @@ def plot_uncertainty(check: dict, out_png: str | Path, gates: tuple[float, float
     a pose's sigma must pass to be reported (``gates``: metres, degrees)."""
     fig = _figure(10, 4.6)
     axes = fig.subplots(1, 2)
-    beyond = (check["t_err_m"] > 3 * check["sigma_m"]) | (check["r_err_deg"] > 3 * check["sigma_deg"])
+    beyond = check["beyond"]
     for ax, err, sig, gate, scale, unit, name in (
             (axes[0], check["t_err_m"], check["sigma_m"], gates[0], 100.0, "cm", "camera centre"),
             (axes[1], check["r_err_deg"], check["sigma_deg"], gates[1], 1.0, "deg", "orientation")):
