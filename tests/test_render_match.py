@@ -383,6 +383,42 @@ def test_a_relocalization_refuses_a_place_the_camera_cannot_have_walked_to(rm_se
     assert tr.process(f8.image, seq.camera, stamp=float(f8.stamp)).status == Status.TRACKING and tr.anchor.confirmed
 
 
+def test_a_relocalization_refuses_a_place_whose_render_disagrees_with_the_frame(rm_setup):
+    """Warehouse seed 3: a frame looking down an aisle matched the next aisle over (a floor of repeating texture)
+    with more PnP inliers than the true place, and was tracked there 6.3 m off. The render there disagrees with the
+    frame as a picture: services.localize.agreement scores the render at the truth high, at places nearby low, and a
+    relocalization whose render scores under ``reloc_min_agreement`` is refused with that reason."""
+    import cv2
+
+    from services.localize.agreement import structure_agreement
+    from services.geometry.se3 import Pose
+    from services.localize.render_match import _Frame
+
+    renderer, ext, db, seq, _ = rm_setup
+    f7, G7 = seq.read(7), seq.groundtruth.poses[7]
+    gray = cv2.cvtColor(f7.image, cv2.COLOR_BGR2GRAY)
+
+    def agreement(T):
+        r = renderer.render(T, seq.camera)
+        return structure_agreement(gray, cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY), r.measured)
+
+    right = agreement(G7)
+    wrong = [agreement(G7 @ Pose.from_rotvec_t([0, 0, 0], d)) for d in ([1.5, 0, 0], [0, 0, 2.0], [-1.5, 0, -1.0])]
+    turned = agreement(G7 @ Pose.from_rotvec_t([0, 0.7, 0], [0, 0, 0]))
+    assert right > 0.8 and max(wrong + [turned]) < 0.5, (right, wrong, turned)
+    # exposure, gain and sensor noise do not change the picture's structure
+    noisy = np.clip(0.5 * gray + 40 + np.random.default_rng(0).normal(0, 6, gray.shape), 0, 255).astype(np.uint8)
+    r = renderer.render(G7, seq.camera)
+    assert structure_agreement(noisy, cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY), r.measured) > 0.8 * right
+    assert np.isnan(structure_agreement(gray, gray, np.zeros(gray.shape, bool)))  # nothing of the scan in view
+    # the check in the relocalization: refused when the render must agree better than any can
+    tr = RenderMatchTracker(renderer, ext, db, RMConfig(reloc_min_agreement=1.01))
+    f = _Frame(f7.image, seq.camera, {}, None, 0.0, None)
+    assert tr._relocalize(f, None) is None and f.reason.startswith("render disagrees with the frame"), f.reason
+    ok = RenderMatchTracker(renderer, ext, db)._relocalize(_Frame(f7.image, seq.camera, {}, None, 0.0, None), None)
+    assert ok is not None and G7.distance_to(ok.T_wc)[0] < 0.05
+
+
 def test_a_cold_frame_needs_a_clear_margin_over_look_alikes_elsewhere(rm_setup):
     """With no recent pose, two places 10 and 20 m away that each fit the frame 60 % as well (aisles of racks like
     this one) make it ambiguous: the simulated warehouse's cold start matched a wrong aisle 12.8 m off with 39
@@ -456,7 +492,8 @@ def test_a_crowded_cold_frame_is_searched_again_with_more_keypoints(rm_setup, si
     place fits with the usual 1024 is searched and verified again with ``reloc_top_k``. Half of a test frame covered by
     printed text (half the keypoints on it), against a database of 320 px faces: no pose with 1024 (22-26 inliers), within
     0.5 cm / 0.1 deg with 2048. (benchmarks/occluders.py: the office walk with passers-by over 28 % of the frame,
-    220 -> 241 of 300 frames; a clean walk never pays: its frames relocalize with 1024 or are not cold.)"""
+    220 -> 241 of 300 frames; a clean walk never pays: its frames relocalize with 1024 or are not cold.) So covered, a
+    cold frame's render agrees with it too little to be reported (reloc_min_agreement): found, then refused."""
     import cv2
 
     from services.io.scans import load_scan
@@ -481,7 +518,11 @@ def test_a_crowded_cold_frame_is_searched_again_with_more_keypoints(rm_setup, si
         G = seq.groundtruth_pose(f.stamp)
         few = RenderMatchTracker(renderer, ext, db, RMConfig(reloc_top_k=1024)).process(img, cam)
         assert few.status == Status.LOST and "database" in few.reason, (idx, few.reason)  # 22-26 inliers, 30 needed
-        r = RenderMatchTracker(renderer, ext, db).process(img, cam)
+        # half the frame is a sign the render does not show: a cold pose must also agree with the frame as a picture
+        # (reloc_min_agreement), which a wrong aisle does not and a frame half covered does not either: refused
+        refused = RenderMatchTracker(renderer, ext, db).process(img, cam)
+        assert refused.status == Status.LOST and refused.reason.startswith("render disagrees"), (idx, refused.reason)
+        r = RenderMatchTracker(renderer, ext, db, RMConfig(reloc_min_agreement=0.0)).process(img, cam)
         assert r.status == Status.RELOCALIZED, (idx, r.reason)
         dt, dr = G.distance_to(r.T_wc)
         assert dt < 0.02 and dr < 0.2, (idx, dt, dr)

@@ -64,11 +64,13 @@ from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, rate_changed, unroll_moving
 from services.geometry.se3 import Pose
+from services.localize.agreement import structure_agreement
 from services.localize.carry import OdometryCarry
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
 from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
+from services.relocalize.ambiguity import FAR_M
 from services.relocalize.hint import near_hint
 from services.relocalize.reach import FloorPlan
 from services.render.depth_sampling import plane_normals, support_fraction
@@ -131,6 +133,13 @@ class RMConfig:
     #                                          aisle 38 m off with 111 inliers; the top 33 views held one place with half
     #                                          that, the top 83 three (a periodic site), and the true place none
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
+    reloc_min_agreement: float = 0.6  # a verified place over 2 m from the last known position (or found cold) whose
+    #                                   render agrees with the frame less than this as a picture (services.localize.
+    #                                   agreement: gradient correlation at 160 px) is refused, and is no rival either:
+    #                                   the next aisle over on a floor of repeating texture gave 103-174 inliers, more
+    #                                   than the true place, at 0.08-0.51; right poses score 0.76-1.0 on clean frames
+    #                                   (office walks, dark and high-ISO copies, the warehouse), 0.28-0.59 with people
+    #                                   over 28 % of the frame, 0.41 with a sign over half of it
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
     odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for up to
@@ -871,6 +880,17 @@ class RenderMatchTracker:
                              f"can be ({reach[1]:.1f} m)")
                 log.info("relocalization %s", fr.reason)
                 continue
+            # a place away from where the camera was (or with nothing to say where that was) must also agree with the
+            # frame as a picture; near it there is no look-alike to take, and people in front of the camera lower the
+            # agreement (office walk with passers-by over 28 % of the frame: 0.28-0.59 at right poses)
+            last = (walk or reach or near or (None,))[0]
+            jump = last is None or np.linalg.norm(r.T_wc.t - last) > FAR_M
+            agreement = self._agreement(fr, self.kf) if jump else float("nan")
+            if agreement < cfg.reloc_min_agreement:  # (NaN, too little of the scan in view to judge: not refused)
+                fr.reason = (f"render disagrees with the frame: agreement {agreement:.2f}, a pose needs "
+                             f"{cfg.reloc_min_agreement:.2f} ({r.n_inliers} inliers)")
+                log.info("relocalization refused: %s", fr.reason)
+                continue
             if walk is not None and not self._walkable(walk[0], r.T_wc.t, walk[1]):
                 fr.reason = (f"place out of reach: {np.linalg.norm(r.T_wc.t - walk[0]):.1f} m away, but not within "
                              f"{walk[1]:.1f} m through the scan's free space")
@@ -893,7 +913,8 @@ class RenderMatchTracker:
 
         def verify(rival: PnpResult) -> bool:  # a near rival is a place of its own when it verifies elsewhere
             v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds)
-            return v is not None and not self._same_place(r, v)
+            return (v is not None and not self._same_place(r, v)
+                    and not self._agreement(fr, self.kf) < cfg.reloc_min_agreement)  # (a wrong aisle is no rival)
 
         kf = self.kf
         rival = self.db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
@@ -904,6 +925,15 @@ class RenderMatchTracker:
             fr.reason = f"ambiguous place: {rival}"
             return None
         return r
+
+    def _agreement(self, fr: _Frame, kf: Keyframe) -> float:
+        """How well the keyframe's render agrees with the frame as a picture (services.localize.agreement)."""
+        t0 = time.perf_counter()
+        mean = np.full((1, 3), 1 / 3)  # (the render has the lens's distortion, as the frame: compared as they are)
+        a = structure_agreement(cv2.transform(fr.image, mean) if fr.image.ndim == 3 else fr.image,
+                                cv2.transform(kf.render.rgb, mean), kf.render.measured)
+        fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
+        return a
 
     def _walkable(self, a: np.ndarray, b: np.ndarray, metres: float) -> bool:
         """Whether the camera can have walked from ``a`` to ``b`` (world) within ``metres`` through the scan's free space
