@@ -390,8 +390,8 @@ def test_a_relocalization_refuses_a_place_whose_render_disagrees_with_the_frame(
     relocalization whose render scores under ``reloc_min_agreement`` is refused with that reason."""
     import cv2
 
-    from services.localize.agreement import structure_agreement
     from services.geometry.se3 import Pose
+    from services.localize.agreement import structure_agreement
     from services.localize.render_match import _Frame
 
     renderer, ext, db, seq, _ = rm_setup
@@ -415,8 +415,15 @@ def test_a_relocalization_refuses_a_place_whose_render_disagrees_with_the_frame(
     tr = RenderMatchTracker(renderer, ext, db, RMConfig(reloc_min_agreement=1.01))
     f = _Frame(f7.image, seq.camera, {}, None, 0.0, None)
     assert tr._relocalize(f, None) is None and f.reason.startswith("render disagrees with the frame"), f.reason
-    ok = RenderMatchTracker(renderer, ext, db)._relocalize(_Frame(f7.image, seq.camera, {}, None, 0.0, None), None)
+    tr, f = RenderMatchTracker(renderer, ext, db), _Frame(f7.image, seq.camera, {}, None, 0.0, None)
+    ok = tr._relocalize(f, None)
     assert ok is not None and G7.distance_to(ok.T_wc)[0] < 0.05
+    # the tracker compares the frame as it is with its render, the lens's distortion in both: a strongly distorted
+    # camera's picture (rendered, as the frame) against the tracker's keyframe render at the same pose
+    wide = dataclasses.replace(seq.camera, distortion=(-0.3, 0.08, 0.0, 0.0, 0.0))
+    shot = renderer.render(G7, wide).rgb[:, :, ::-1].copy()
+    fw = _Frame(shot, wide, {}, None, 0.0, None)
+    assert tr._agreement(fw, tr._keyframe(G7, fw)) > 0.95
 
 
 def test_a_cold_frame_needs_a_clear_margin_over_look_alikes_elsewhere(rm_setup):
