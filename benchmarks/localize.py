@@ -63,10 +63,10 @@ def main() -> None:
                 wrong += 1
                 missed.append(f"{i} ({100 * dt:.0f} cm / {dr:.1f} deg off)")
         else:
-            missed.append(str(i))
+            missed.append(f"{i} ({r.reason})")
     print(f"| cold relocalization | {ok}/{len(idx)} = {ok / len(idx):.0%} of random frames within 5 cm / 1 deg; "
           f"{wrong} reported further off; median {1e3 * np.median(times):.0f} ms each |")
-    print("not relocalized: " + ", ".join(missed[i] for i in np.argsort([int(m.split()[0]) for m in missed])))
+    print("not relocalized:\n  " + "\n  ".join(missed[i] for i in np.argsort([int(m.split()[0]) for m in missed])))
 
 
 if __name__ == "__main__":
