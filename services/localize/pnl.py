@@ -1079,7 +1079,7 @@ class PnlLocalizer:
         if (self._good(r, fr) and rs_settled and status == Status.TRACKING and prior is None
                 and 0 < self.cfg.confirm_after <= self._unsure):
             t0 = time.perf_counter()
-            unconfirmed = self._confirm(fr, r)
+            unconfirmed = self._confirm(fr, T_wc)
             tm["confirm_ms"] = 1e3 * (time.perf_counter() - t0)
         if unconfirmed is not None or not self._good(r, fr) or not rs_settled:  # not reported, but tracked from
             self.T_last = T_wc
@@ -1092,16 +1092,16 @@ class PnlLocalizer:
         self.T_last, self._near, self._unsure = T_wc, None, 0
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
 
-    def _confirm(self, fr: _Frame, r) -> str | None:
-        """Whether a tracked pose after a run of poses too uncertain to report (``_unsure``) agrees with a relocalization
-        of the frame: None when it does, else why not. Either can be the wrong one (a turn along a plain wall fits poses
+    def _confirm(self, fr: _Frame, T_wc: Pose) -> str | None:
+        """Whether a tracked pose ``T_wc`` after a run of poses too uncertain to report (``_unsure``) agrees with a
+        relocalization of the frame: None when it does, else why not. Either can be the wrong one (a turn along a plain wall fits poses
         sliding along it: office seed 8 frame 282 tracked 55 cm off, frame 187 relocalized 18 cm off), so a
         disagreement, or no relocalization to agree, leaves the frame unreported, tracked on from its tracked pose."""
         c = self._relocalize(fr, {})
         if not self._good(c, fr):
             return (f"pose not confirmed after {self._unsure} uncertain frames "
                     f"(relocalization: {fr.reason or 'no pose to report'})")
-        dt, dr = Pose(r[0].T, -r[0].T @ r[1]).distance_to(Pose(c[0].T, -c[0].T @ c[1]))
+        dt, dr = T_wc.distance_to(Pose(c[0].T, -c[0].T @ c[1]))
         if dt <= self.cfg.confirm_m and dr <= self.cfg.confirm_deg:
             return None
         return (f"pose not confirmed after {self._unsure} uncertain frames "
