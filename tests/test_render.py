@@ -60,6 +60,27 @@ def test_splat_equals_brute_force_with_distortion():
     assert (r.count == cnt).mean() > 0.998
 
 
+def test_the_splat_kernel_compiles_once_whatever_the_pose_and_camera():
+    """A pose inverted by transposing R is Fortran-ordered, one built from a 4x4 is a view, a distortion tuple is
+    float64: each new argument layout would make numba compile the kernel again, 7-14 s on a 2-core box, which a
+    server paid on its first client's relocalization (a missed deadline; CI failed on it)."""
+    from services.render import splat as splat_mod
+
+    scan = random_room(20000)
+    cloud = prepare_cloud(scan, chunk=1024)
+    R = look_at((1, 1, 1.5), (5, 4, 1.2)).R
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, scan.origin + [1, 1, 1.5]
+    poses = [Pose(R, scan.origin + [1, 1, 1.5]), Pose(np.asfortranarray(R), scan.origin + [1, 1, 1.5]),
+             Pose(M[:3, :3], M[:3, 3]), Pose(R.astype(np.float32), (scan.origin + [1, 1, 1.5]).astype(np.float32))]
+    cams = [CAM_D, Camera(64, 48, 40.0, 40.0, 32.0, 24.0), Camera.from_fov(64, 48, 60.0)]
+    before = set(splat_mod._splat.signatures)
+    for T in poses:
+        for cam in cams:
+            assert splat(cloud, T, cam).count.sum() > 0
+    assert len(set(splat_mod._splat.signatures) - before) <= 1 and len(splat_mod._splat.signatures) == 1
+
+
 def test_frustum_culling_changes_nothing():
     scan = random_room(seed=1)
     cloud = prepare_cloud(scan, chunk=512)

@@ -198,7 +198,11 @@ def splat(cloud: PreparedCloud, T_wc: Pose, camera: Camera, cfg: SplatConfig = S
     acc = np.empty((nt, W * H, 3), np.float32)
     cnt = np.empty((nt, W * H), np.int32)
     intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
-    _splat(cloud.xyz, cloud.rgb, chunks, lims, cloud.chunk, T_cw_local.R.astype(np.float32), T_cw_local.t.astype(np.float32),
-           intr, camera.dist, camera.is_distorted, _r2max(camera), cfg.near, cfg.delta_abs, cfg.delta_rel, W, H,
+    # one argument signature for every call: numba compiles a kernel per layout and type (a transposed R is
+    # Fortran-ordered), and a second compilation costs 7-14 s on a 2-core box in the middle of serving a frame
+    f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
+    _splat(cloud.xyz, cloud.rgb, chunks.astype(np.int64), lims.astype(np.int64), int(cloud.chunk), f32(T_cw_local.R),
+           f32(T_cw_local.t), intr, np.ascontiguousarray(camera.dist, dtype=np.float64), bool(camera.is_distorted),
+           float(_r2max(camera)), float(cfg.near), float(cfg.delta_abs), float(cfg.delta_rel), int(W), int(H),
            zbuf, acc, cnt)
     return SplatResult(acc[0].reshape(H, W, 3), zbuf[0].reshape(H, W), cnt[0].reshape(H, W))

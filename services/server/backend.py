@@ -92,7 +92,7 @@ class RMBackend:
         return backend
 
     def warm_up(self) -> None:
-        """The scan's floor plan, and one render, XFeat pass and pose solve before serving: the first client's first
+        """The scan's floor plan, and one tracked and one cold (relocalized) frame before serving: the first client's first
         frame must not pay for JIT compilation, kernel selection and lazy imports (measured: > 1 s, a missed deadline,
         in a fresh process), nor a client's relocalization for the plan (1.3 s for 6 M points)."""
         import time
@@ -108,6 +108,8 @@ class RMBackend:
         tr = _RMTracker(self)
         r = self.renderer.render(T, cam)
         tr.t.process(r.rgb, cam, prior=T, stamp=0.0)
+        tr.t.reset()
+        tr.t.process(r.rgb, cam, prior=None, stamp=0.0)  # and the cold path a client's first frame takes (retrieval)
         log.info("backend warm in %.2f s", time.perf_counter() - t0)
 
     def new_tracker(self) -> _RMTracker:
