@@ -81,8 +81,7 @@ def test_a_weak_relocalization_says_why_with_its_numbers_after_the_kind(rm_setup
     probe = RenderMatchTracker(renderer, ext, db)
     fr = _Frame(f.image, seq.camera, {}, None, 0.0, None)
     best = db.hypotheses(probe._live(fr, probe._reloc_scale(seq.camera)), seq.camera, 8, 6)[0][0].n_inliers
-    # the best place falls just short (at the first query scale; coarser ones are not tried here)
-    tr = RenderMatchTracker(renderer, ext, db, RMConfig(reloc_min_inliers=best + 1, reloc_coarser_ratios=()))
+    tr = RenderMatchTracker(renderer, ext, db, RMConfig(reloc_min_inliers=best + 1))  # the best place falls just short
     r = tr.process(f.image, seq.camera)
     assert r.status == Status.LOST and reason_kind(r.reason) == "too few inliers in the database", r.reason
     assert f"has {best}, a pose needs {best + 1}" in r.reason
@@ -336,9 +335,7 @@ def test_tracker_refuses_a_twin_place_and_a_pose_beyond_reach(rm_setup):
     f6, f7 = seq.read(6), seq.read(7)
     G6, G7 = seq.groundtruth.poses[6], seq.groundtruth.poses[7]
     tr = RenderMatchTracker(renderer, ext, twin, RMConfig(recover_s=0.0))  # the database, not the last pose, re-acquires
-    cold = tr.process(f7.image, seq.camera)
-    assert cold.status == Status.LOST  # cold: a coin toss refused ...
-    assert cold.reason.startswith("ambiguous place") and "coarser" not in cold.reason  # ... and not asked again
+    assert tr.process(f7.image, seq.camera).status == Status.LOST  # cold: a coin toss refused
     # reported a moment ago (seeded by a prior), lost, back: searched within reach, the right copy
     assert tr.process(f6.image, seq.camera, prior=G6, stamp=float(f6.stamp)).status == Status.TRACKING
     noise = np.random.default_rng(0).integers(0, 255, f7.image.shape, dtype=np.uint8)
@@ -852,40 +849,9 @@ def test_a_high_resolution_frame_is_relocalized_at_the_database_s_scale(tmp_path
             dt, dr = seq.groundtruth.poses[i].distance_to(r.T_wc)
             assert dt < 0.02 and dr < 0.2, (i, dt, dr)
             found += 1
-        full = RMConfig(reloc_px_ratio=0, reloc_coarser_ratios=())
-        assert RenderMatchTracker(renderer, ext, db, full).process(f.image, seq.camera).status \
+        assert RenderMatchTracker(renderer, ext, db, RMConfig(reloc_px_ratio=0)).process(f.image, seq.camera).status \
             == Status.LOST  # matched at full size: nowhere
     assert found >= 2
-
-
-def test_a_close_up_no_place_fits_is_queried_again_at_a_coarser_scale(rm_setup, small_site):
-    """The database's cubemaps stand up to a spacing away from what a close-up sees, so the surface's details are
-    larger in the frame than in any face: XFeat, single-scale, then matches too little (office seed 8 cold, a desk
-    at 1 m: 17-27 inliers at the first scale, 135-179 at the next: benchmarks/localize.py, 23 -> 30/40). A frame that
-    no place fits is queried again at coarser scales, each coarser than the last; a refusal is final."""
-    import cv2
-
-    from services.geometry.se3 import Pose
-    from services.sim.site import SimSite
-
-    renderer, ext, db, seq, _ = rm_setup
-    cam = seq.camera.scaled(2.4)  # 480x360
-    G = seq.groundtruth.poses[10]
-    T = Pose(G.R, G.t + G.R[:, 2] * 2.71)  # walked 2.7 m towards what it looks at: 1.37 m median depth
-    rgb, depth = SimSite(small_site[0]).render(T, cam, lighting="camera")
-    assert 1.2 < np.median(depth[depth > 0]) < 1.5
-    img = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
-    r = RenderMatchTracker(renderer, ext, db).process(img, cam)  # (at the first scale alone: 16-30 inliers, too few
-    #                                                               or just enough, with the box's threads and XFeat)
-    assert r.status == Status.RELOCALIZED, r.reason
-    dt, dr = T.distance_to(r.T_wc)
-    assert dt < 0.02 and dr < 0.5, (dt, dr)
-    # what it tried is said: garbage fits nowhere at any scale
-    grey = np.full_like(img, 128)
-    lost = RenderMatchTracker(renderer, ext, db).process(grey, cam)
-    assert lost.status == Status.LOST and "(and at coarser scales: " in lost.reason
-    scales = RenderMatchTracker(renderer, ext, db)._reloc_scales(cam)
-    assert len(scales) == 3 and all(b < 0.9 * a for a, b in zip(scales, scales[1:]))
 
 
 def test_a_pose_the_motion_cannot_reach_is_not_reported(rm_setup, site_480):

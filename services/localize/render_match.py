@@ -101,10 +101,6 @@ class RMConfig:
     #                              pixels per radian (XFeat matches poorly across larger scale changes: a 1280x720
     #                              frame matched at full size, 6x the 320 px faces, relocalized nowhere for 70 frames;
     #                              a VGA frame at the CPU's 480 px is 2.3x); 0 = the tracking scale
-    reloc_coarser_ratios: tuple[float, ...] = (1.5, 1.0)  # a frame that no place fits (or none confirms) at
-    #                              reloc_px_ratio is queried again at these, coarser first: a close-up's details are
-    #                              larger than the same surface in the database's faces, seen from up to a spacing
-    #                              away (office seed 8 cold: a desk at 1 m, 17-27 inliers at 2.5, 135-179 at 1.5)
     reloc_top_k: int = 2048  # a cold relocalizing frame that no place fits with the extractor's keypoints (1024) is
     #                          searched and verified again with this many: people in front of the camera take many of
     #                          the strongest (benchmarks/occluders.py: two passers-by over 28 % of the frame; cold frame
@@ -409,25 +405,14 @@ class RenderMatchTracker:
         side = self.extractor.max_side
         return min(1.0, side / max(camera.width, camera.height)) if side else 1.0
 
-    def _reloc_scale(self, camera: Camera, ratio: float | None = None) -> float:
+    def _reloc_scale(self, camera: Camera) -> float:
         """The live frame's feature resolution for a database query: the tracking one, capped at
-        ``ratio`` (default ``reloc_px_ratio``) x the database faces' focal length."""
+        ``reloc_px_ratio`` x the database faces' focal length."""
         s = self._base_scale(camera)
-        ratio = self.cfg.reloc_px_ratio if ratio is None else ratio
         face = self.db.meta.get("face_size") if self.db is not None else None
-        if face and ratio > 0:
-            s = min(s, ratio * (face / 2) / max(camera.fx, camera.fy))
+        if face and self.cfg.reloc_px_ratio > 0:
+            s = min(s, self.cfg.reloc_px_ratio * (face / 2) / max(camera.fx, camera.fy))
         return s
-
-    def _reloc_scales(self, camera: Camera) -> list[float]:
-        """The query scales a relocalization tries in turn: ``reloc_px_ratio``'s, then each of
-        ``reloc_coarser_ratios`` that is coarser than the one before (a small frame may already be coarse enough)."""
-        scales = [self._reloc_scale(camera)]
-        for q in self.cfg.reloc_coarser_ratios:
-            s = self._reloc_scale(camera, q)
-            if s < 0.9 * scales[-1] and s * max(camera.width, camera.height) >= 96:
-                scales.append(s)
-        return scales
 
     def _live(self, fr: _Frame, scale: float) -> Features:
         """Live-frame features at ``scale`` of its resolution, the frame's ``top_k`` strongest; computed once per frame,
@@ -840,32 +825,14 @@ class RenderMatchTracker:
     def _relocalize(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
                     reach: tuple[np.ndarray, float] | None = None,
                     walk: tuple[np.ndarray, float] | None = None) -> PnpResult | None:
-        """A pose from the database (:meth:`_relocalize_at`), queried at the finest scale first and, while no place
-        fits or none is confirmed, at coarser ones (:meth:`_reloc_scales`). A refusal (an ambiguous place, one out of
-        reach or disagreeing with the frame) is final: another scale must not talk it away."""
-        r = None
-        for i, scale in enumerate(self._reloc_scales(fr.camera)):
-            fr.reason, fr.top_k = None, None  # (each scale starts with the extractor's keypoint budget)
-            r = self._relocalize_at(fr, near, reach, walk, scale)
-            if r is not None or not fr.reason or not fr.reason.startswith(("no place in the database", "too few inliers")):
-                break
-            if i == 0:
-                first = fr.reason
-        if r is None and fr.reason and fr.reason.startswith(("no place in the database", "too few inliers")) and i > 0:
-            fr.reason = f"{first} (and at coarser scales: {fr.reason})"
-        return r
-
-    def _relocalize_at(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
-                       reach: tuple[np.ndarray, float] | None, walk: tuple[np.ndarray, float] | None,
-                       scale: float) -> PnpResult | None:
-        """A pose from the database with the frame's features at ``scale``, verified: coarse poses from the best-matching views (one per place), each
+        """A pose from the database, verified: coarse poses from the best-matching views (one per place), each
         rendered at and matched again until one passes the report gate; refused when two places fit the
         frame about as well (repetitive sites), coarsely or verified. ``near`` = (recent position, radius): search
         only views within reach of it; ``reach`` = (position, radius), else ``near``: refuse a pose beyond it
         (a bay of identical racks 2-4 m on); ``walk`` = (position, metres): refuse a pose the camera cannot have walked
         to from there through the scan's free space (:meth:`_walkable`: the next aisle over)."""
         cfg = self.cfg
-        feats = self._live(fr, scale)
+        feats = self._live(fr, self._reloc_scale(fr.camera))
         t0 = time.perf_counter()
         reach = reach or near
         # a weak coarse pose is verified only where the camera cannot have reached a look-alike place
@@ -888,7 +855,7 @@ class RenderMatchTracker:
             # near a recent pose would pay for it on every frame of a whip pan)
             fr.top_k = cfg.reloc_top_k
             t1 = time.perf_counter()
-            feats = self._live(fr, scale)
+            feats = self._live(fr, self._reloc_scale(fr.camera))
             t0 += time.perf_counter() - t1  # (features_ms)
             hyps = search(feats)
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
