@@ -74,11 +74,10 @@ def test_the_splat_kernel_compiles_once_whatever_the_pose_and_camera():
     poses = [Pose(R, scan.origin + [1, 1, 1.5]), Pose(np.asfortranarray(R), scan.origin + [1, 1, 1.5]),
              Pose(M[:3, :3], M[:3, 3]), Pose(R.astype(np.float32), (scan.origin + [1, 1, 1.5]).astype(np.float32))]
     cams = [CAM_D, Camera(64, 48, 40.0, 40.0, 32.0, 24.0), Camera.from_fov(64, 48, 60.0)]
-    before = set(splat_mod._splat.signatures)
     for T in poses:
         for cam in cams:
             assert splat(cloud, T, cam).count.sum() > 0
-    assert len(set(splat_mod._splat.signatures) - before) <= 1 and len(splat_mod._splat.signatures) == 1
+    assert len(splat_mod._splat.signatures) == 1  # (also over every render the test session made before this one)
 
 
 def test_frustum_culling_changes_nothing():
