@@ -201,7 +201,7 @@ def splat(cloud: PreparedCloud, T_wc: Pose, camera: Camera, cfg: SplatConfig = S
     # one argument signature for every call: numba compiles a kernel per layout and type (a transposed R is
     # Fortran-ordered), and a second compilation costs 7-14 s on a 2-core box in the middle of serving a frame
     f32 = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
-    _splat(cloud.xyz, cloud.rgb, chunks.astype(np.int64), lims.astype(np.int64), int(cloud.chunk), f32(T_cw_local.R),
+    _splat(cloud.xyz, cloud.rgb, np.asarray(chunks, np.int64), np.asarray(lims, np.int64), int(cloud.chunk), f32(T_cw_local.R),
            f32(T_cw_local.t), intr, np.ascontiguousarray(camera.dist, dtype=np.float64), bool(camera.is_distorted),
            float(_r2max(camera)), float(cfg.near), float(cfg.delta_abs), float(cfg.delta_rel), int(W), int(H),
            zbuf, acc, cnt)
