@@ -80,6 +80,26 @@ def test_the_splat_kernel_compiles_once_whatever_the_pose_and_camera():
     assert len(splat_mod._splat.signatures) == 1  # (also over every render the test session made before this one)
 
 
+def test_rendering_leaves_torch_on_the_threads_it_was_given():
+    """numba's OpenMP pool shares torch's runtime, and each parallel launch (and starting the pool) set the
+    calling thread's count to all cores: the CLIs' torch.set_num_threads(1) held only until the first render,
+    and XFeat's output then depended on whether a render order was computed before it (a database built from
+    a freshly parsed scan differed from one built from the scan cache)."""
+    from services.render.cloud import render_order
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        scan = random_room(20000, seed=3)
+        render_order(scan.xyz)
+        assert torch.get_num_threads() == 1
+        cloud = prepare_cloud(scan, chunk=1024)
+        assert splat(cloud, Pose(look_at((1, 1, 1.5), (5, 4, 1.2)).R, scan.origin + [1, 1, 1.5]), CAM_D).count.sum() > 0
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_frustum_culling_changes_nothing():
     scan = random_room(seed=1)
     cloud = prepare_cloud(scan, chunk=512)

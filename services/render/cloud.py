@@ -26,6 +26,7 @@ import numpy as np
 
 from services.io.atomic import atomic_write
 from services.io.scan import Scan
+from services.render.threads import keeps_torch_threads
 
 log = logging.getLogger(__name__)
 ORDER_VERSION = 1  # bump when the order changes (sort key, shuffle): kept orders of older versions are ignored
@@ -78,6 +79,7 @@ def _morton_codes(xyz, lo, cell):
     return out
 
 
+@keeps_torch_threads  # numba's pool would leave torch on every core (services.render.threads)
 def render_order(xyz: np.ndarray, cell: float = 0.05, chunk: int = CHUNK) -> np.ndarray:
     """The preparation order of points ``xyz``: Morton order on a ``cell`` grid, shuffled inside each run of
     ``chunk`` points (the last, partial one its own) so that any prefix of a chunk is a uniform sample of it."""

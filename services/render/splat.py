@@ -24,6 +24,7 @@ import numpy as np
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 from services.render.cloud import PreparedCloud
+from services.render.threads import keeps_torch_threads
 
 __all__ = ["SplatConfig", "SplatResult", "splat", "visible_chunks", "chunk_limits"]
 
@@ -185,6 +186,7 @@ def chunk_limits(cloud: PreparedCloud, chunks: np.ndarray, T_cw_local: Pose, cam
     return np.maximum(1, np.ceil(frac * cloud.chunk)).astype(np.int64)
 
 
+@keeps_torch_threads  # numba's pool would leave torch on every core (services.render.threads)
 def splat(cloud: PreparedCloud, T_wc: Pose, camera: Camera, cfg: SplatConfig = SplatConfig(),
           cull: bool = True) -> SplatResult:
     """Render the raw splat of ``cloud`` seen by ``camera`` at camera-to-world ``T_wc``."""
