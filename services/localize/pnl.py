@@ -351,6 +351,12 @@ class PnlLocalizer:
                 if r is not None:
                     self._patch_of_row[r] = j
         self._corner = corner_scores(patches.patches) if patches is not None else np.zeros(0)
+        # where patch alignment places each landmark: the patch file's refitted position where it has one, else the
+        # map's (ORB keypoint measurements keep the map's positions, which is where the corners were detected)
+        self._apos = self.idx.pos.copy()
+        if patches is not None and patches.pos is not None:
+            has = self._patch_of_row >= 0
+            self._apos[has] = patches.pos[self._patch_of_row[has]]
         self._undistort: dict = {}
         orb = next(iter(stella_map.orb_params.values()))
         self._orb = orb
@@ -645,7 +651,7 @@ class PnlLocalizer:
         dc = DirectConfig(passes=cfg.align_passes, sigma_px=cfg.align_sigma_px, rmse_floor=cfg.align_rmse_floor,
                           min_inliers=cfg.min_inliers // 2, min_inlier_frac=cfg.align_min_inlier_frac, max_moved_px=max_moved_px,
                           warp_noise_ref=cfg.warp_noise_ref)
-        d = align_and_solve(self.patches, self._patch_of_row[rows], self.idx.pos[rows], R, t, fr.K, self._gray(fr), dc, blur)
+        d = align_and_solve(self.patches, self._patch_of_row[rows], self._apos[rows], R, t, fr.K, self._gray(fr), dc, blur)
         return None if d is None else (d.R, d.t, d.inliers, d.rmse, d.sigma_m, d.sigma_deg, True)
 
     def _align_rows(self, fr: _Frame, R: np.ndarray, t: np.ndarray, lm: np.ndarray, kp: np.ndarray, inl: np.ndarray,
@@ -686,7 +692,7 @@ class PnlLocalizer:
         rows = rows[self._corner[self._patch_of_row[rows]] >= self.cfg.align_min_corner]
         if len(rows) == 0 or n <= 0:
             return rows[:0]
-        X = self.idx.pos[rows] @ R.T + t
+        X = self._apos[rows] @ R.T + t
         z = np.maximum(X[:, 2], 1e-6)
         u = fr.K[0, 0] * X[:, 0] / z + fr.K[0, 2]
         v = fr.K[1, 1] * X[:, 1] / z + fr.K[1, 2]
@@ -729,12 +735,12 @@ class PnlLocalizer:
         t0 = time.perf_counter()
         R, t, sel = self._corners_seen(fr, pred, self.cfg.search_landmarks)
         deltas = self._blur_deltas(fr, self._blur_px(fr))
-        uv, found = search_patches(self.patches, self._patch_of_row[sel], self.idx.pos[sel], R, t, fr.K, self._gray(fr),
+        uv, found = search_patches(self.patches, self._patch_of_row[sel], self._apos[sel], R, t, fr.K, self._gray(fr),
                                    radius=int(round(self.cfg.search_radius_px * fr.width / 640)),
                                    blur=[(Rd @ R, Rd @ t + td) for Rd, td in deltas] if deltas else None)
         out = None
         if found.sum() >= self.cfg.search_min_found:
-            T, n = _pnp_ransac(self.idx.pos[sel[found]], uv[found], fr.K, 2.0, 200)
+            T, n = _pnp_ransac(self._apos[sel[found]], uv[found], fr.K, 2.0, 200)
             out = T if n >= self.cfg.search_min_found else None
         tm["search_ms"] = 1e3 * (time.perf_counter() - t0)
         return out

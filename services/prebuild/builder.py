@@ -17,7 +17,9 @@ keypoint per keyframe (the one nearest the cluster's median point) and only obse
 with the median in 3D. Clusters seen by fewer than ``min_observations`` keyframes are dropped, the
 rest become landmarks at the mean of their observations. Keyframes without landmarks are dropped;
 the spanning tree is the maximum spanning tree of the covisibility graph (shared landmarks), so
-parents are the most covisible keyframes, as SLAM would have linked them.
+parents are the most covisible keyframes, as SLAM would have linked them. Each landmark's patch is then aligned
+into the other keyframes that observe it (renders at exact poses), and where one depth along the source ray
+explains them all within a pixel, the patch file gets that depth for alignment (``LandmarkPatches.pos``).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hammin
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose, look_at
 from services.log import progress
-from services.prebuild.patches import LandmarkPatches, map_fingerprint, sample_patches
+from services.prebuild.patches import LandmarkPatches, align_to_patches, map_fingerprint, sample_patches
 from services.prebuild.stella_map import DEFAULT_ORB_NAME, MapCamera, MapKeyframe, OrbParams, StellaMap
 from services.render.depth_sampling import plane_normals
 
@@ -60,6 +62,11 @@ class BuildConfig:
     cluster_tol_m: float = 0.02  # observations farther than this (+1 % of depth) from the cluster median are dropped
     camera_name: str = "cristal camera"
     patch_size: int = 23  # landmark patches (pixels, odd) stored beside the map for live alignment; 0 = none
+    refine_max_px: float = 1.0  # each patch is aligned into its landmark's other keyframes' renders (exact poses) and
+    #                             its depth along the source ray fitted to them; kept where it explains every one of them
+    #                             within this (px at 640 wide), else the render's depth stays (0 = no refit). Depth read
+    #                             off a render at a keypoint errs where the scan points around it straddle surfaces, and
+    #                             live P&L inherited that as a per-landmark bias its 1-sigma did not show
     fps: float = 30.0
 
 
@@ -348,13 +355,81 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
     patches = _landmark_patches(views, obs_view, np.array(lm_src, np.int64), m.lm_pos, cam, cfg) if cfg.patch_size else None
     if patches is not None:
         patches.map_fp = map_fingerprint(m.lm_ids, m.lm_pos)
+    refined = {}
+    if patches is not None and cfg.refine_max_px > 0 and keep_obs:
+        patches.pos, refined = _refit_patch_depths(views, obs_view, keep_obs, lm_pos, lm_src, cam, cfg)
     stats = {"positions": int(len(positions)), "views": len(views), "keyframes": m.n_keyframes, "landmarks": m.n_landmarks,
              "observations": int(len(obs_all)), "candidates": int(len(obs_view)),
              "render_s": round(tm["render_s"], 2), "orb_s": round(tm["orb_s"], 2),
-             "merge_s": round(time.perf_counter() - t_merge, 2), "build_s": round(time.perf_counter() - t_start, 2)}
+             "merge_s": round(time.perf_counter() - t_merge, 2), **refined, "build_s": round(time.perf_counter() - t_start, 2)}
     log.info("prebuild: %d keyframes, %d landmarks (%d observations of %d candidates) in %.1f s", m.n_keyframes,
              m.n_landmarks, stats["observations"], stats["candidates"], stats["build_s"])
     return m, stats, patches
+
+
+def _refit_patch_depths(views: list[_View], obs_view: np.ndarray, keep_obs: list[np.ndarray], lm_pos: list[np.ndarray],
+                      lm_src: list[int], cam: Camera, cfg: BuildConfig) -> tuple[np.ndarray, dict]:
+    """Where patch alignment should place each landmark: its patch (from the source keyframe) is aligned into each
+    other keyframe that observes it (renders at exact poses), and its depth along the source keyframe's ray is
+    fitted to where it aligned (Gauss-Newton on the reprojection error). The fit is kept where it lies within
+    ``refine_max_px`` of every alignment; elsewhere (a corner that slides with the viewpoint, an occlusion's
+    T-junction, a patch that aligned onto something else) and where the patch aligns in no other keyframe, the
+    render's depth stays. The patch stays valid: moving along the source ray keeps its projection there. These
+    positions are for the patches only: ORB corners sit 1.5-2 px from where patches align, and keypoint poses
+    solved against refitted positions got worse (a sparse scan lost frames), so ``map.msg`` keeps the mean of the
+    corners' points. Returns the positions (N, 3) and stats."""
+    t0 = time.perf_counter()
+    n = len(keep_obs)
+    P0 = np.array(lm_pos, np.float64).reshape(-1, 3)
+    lp = _landmark_patches(views, obs_view, np.array(lm_src, np.int64), P0, cam, cfg)
+    K = cam.K
+    lm_of = np.concatenate([np.full(len(o), i) for i, o in enumerate(keep_obs)])
+    ob = np.concatenate(keep_obs)
+    other = ob != np.array(lm_src, np.int64)[lm_of]
+    lm_of, ob_view = lm_of[other], obs_view[ob[other]]
+    q = np.zeros((len(lm_of), 2))
+    ok = np.zeros(len(lm_of), bool)
+    for vi in np.unique(ob_view).tolist():
+        sel = np.flatnonzero(ob_view == vi)
+        T_cw = views[vi].T_wc.inverse()
+        q[sel], ok[sel], _ = align_to_patches(lp, lm_of[sel], P0[lm_of[sel]], T_cw.R, T_cw.t, K,
+                                              views[vi].gray.astype(np.float32))
+    lm_of, ob_view, q = lm_of[ok], ob_view[ok], q[ok]
+    # depth s along the source ray X = C + s d, fitted to the alignments (a few Gauss-Newton steps, all at once)
+    C = np.array([views[v].T_wc.t for v in obs_view[np.array(lm_src, np.int64)]]).reshape(-1, 3)
+    d = P0 - C
+    s = np.linalg.norm(d, axis=1)
+    d /= s[:, None]
+    R = np.array([views[v].T_wc.R.T for v in ob_view]).reshape(-1, 3, 3)  # world-to-camera of each alignment's keyframe
+    t = -np.einsum("nij,nj->ni", R, np.array([views[v].T_wc.t for v in ob_view]).reshape(-1, 3))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+
+    def residuals(s):
+        Xc = np.einsum("nij,nj->ni", R, C[lm_of] + s[lm_of, None] * d[lm_of]) + t
+        z = np.where(Xc[:, 2] > 1e-6, Xc[:, 2], np.nan)
+        return Xc, z, np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy]) - q
+
+    for _ in range(5):
+        Xc, z, r = residuals(s)
+        dXc = np.einsum("nij,nj->ni", R, d[lm_of])  # d Xc / d s
+        J = np.column_stack([fx * (dXc[:, 0] * z - Xc[:, 0] * dXc[:, 2]) / z ** 2, fy * (dXc[:, 1] * z - Xc[:, 1] * dXc[:, 2]) / z ** 2])
+        g = np.bincount(lm_of, np.nan_to_num((J * r).sum(1)), n)
+        h = np.bincount(lm_of, np.nan_to_num((J * J).sum(1)), n)
+        s = np.where(h > 1e-9, np.maximum(s - g / np.maximum(h, 1e-9), 0.05), s)
+    err = np.nan_to_num(np.linalg.norm(residuals(s)[2], axis=1), nan=np.inf)
+    worst = np.zeros(n)
+    np.maximum.at(worst, lm_of, err)
+    checked = np.bincount(lm_of, minlength=n) > 0
+    fit = checked & (worst <= cfg.refine_max_px * max(1.0, cam.width / 640))
+    P = np.where(fit[:, None], C + s[:, None] * d, P0)
+    moved = np.linalg.norm(P - P0, axis=1)[fit]
+    stats = {"refine_checked": int(checked.sum()), "refine_refitted": int(fit.sum()),
+             "refine_moved_cm_p90": round(float(np.percentile(moved, 90) * 100), 2) if fit.any() else 0.0,
+             "refine_s": round(time.perf_counter() - t0, 2)}
+    log.info("prebuild: %d of %d landmark patches' depths refitted to their other keyframes (90 %% moved under %.2f cm; "
+             "%d left as rendered, unexplained by any depth) in %.1f s", stats["refine_refitted"], n, stats["refine_moved_cm_p90"],
+             int((checked & ~fit).sum()), stats["refine_s"])
+    return P, stats
 
 
 def _landmark_patches(views: list[_View], obs_view: np.ndarray, src_obs: np.ndarray, lm_pos: np.ndarray, cam: Camera,

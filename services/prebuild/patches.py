@@ -42,6 +42,9 @@ class LandmarkPatches:
     src_T_cw: np.ndarray  # (V, 3, 4) float64 world-to-camera of the source keyframes
     K: np.ndarray  # (3, 3) float64 pinhole intrinsics of the source renders (undistorted)
     map_fp: str = ""  # map_fingerprint() of the map these patches belong to
+    pos: np.ndarray | None = None  # (N, 3) float64 where alignment places each landmark: its depth along the source ray
+    #                                refitted to the other keyframes' renders (the map's ORB position stays in map.msg);
+    #                                None (a file from before them): the map's positions
 
     @property
     def size(self) -> int:
@@ -51,8 +54,9 @@ class LandmarkPatches:
         meta = {"format_version": PATCH_FORMAT_VERSION, "count": int(len(self.lm_ids)), "size": self.size,
                 "map_fingerprint": self.map_fp}
         with atomic_write(path, "wb") as f:
+            extra = {} if self.pos is None else {"pos": np.asarray(self.pos, np.float64)}
             np.savez(f, lm_ids=self.lm_ids, patches=self.patches, normals=self.normals.astype(np.float32),
-                     src=self.src.astype(np.int32), src_T_cw=self.src_T_cw, K=self.K, meta=np.array(json.dumps(meta)))
+                     src=self.src.astype(np.int32), src_T_cw=self.src_T_cw, K=self.K, meta=np.array(json.dumps(meta)), **extra)
 
     @classmethod
     def load(cls, path: str | Path) -> "LandmarkPatches":
@@ -61,6 +65,7 @@ class LandmarkPatches:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
                 arrays = {k: z[k] for k in ("lm_ids", "patches", "normals", "src", "src_T_cw", "K")}
+                pos = z["pos"].astype(np.float64) if "pos" in z.files else None  # optional: older files lack it
         except (OSError, KeyError, ValueError, json.JSONDecodeError) as e:
             raise ValueError(f"{path}: not a landmark patch file ({e})") from None
         if meta.get("format_version") != PATCH_FORMAT_VERSION:
@@ -68,9 +73,10 @@ class LandmarkPatches:
                              "rebuild the map")
         p = cls(arrays["lm_ids"].astype(np.int64), arrays["patches"], arrays["normals"].astype(np.float64),
                 arrays["src"].astype(np.int64), arrays["src_T_cw"].astype(np.float64), arrays["K"].astype(np.float64),
-                str(meta.get("map_fingerprint", "")))
+                str(meta.get("map_fingerprint", "")), pos)
         n = len(p.lm_ids)
-        if p.patches.shape[0] != n or p.normals.shape != (n, 3) or len(p.src) != n or (n and p.src.max() >= len(p.src_T_cw)):
+        if p.patches.shape[0] != n or p.normals.shape != (n, 3) or len(p.src) != n or (n and p.src.max() >= len(p.src_T_cw)) \
+                or (pos is not None and (pos.shape != (n, 3) or not np.isfinite(pos).all())):
             raise ValueError(f"{path}: inconsistent landmark patch arrays")
         return p
 
