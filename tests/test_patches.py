@@ -211,7 +211,7 @@ def test_the_builder_refits_patch_depths_to_their_other_keyframes_where_a_depth_
     keyframes that observe it (renders at exact poses) and fits its depth along the source ray to them; where no depth
     explains them (here: one landmark's surroundings appear 3 px lower in one keyframe, across the epipolar lines, as
     at an occlusion's T-junction), the render's depth stays."""
-    from services.prebuild.builder import BuildConfig, _refit_patch_depths, _View
+    from services.prebuild.builder import BuildConfig, _landmark_patches, _refit_patch_depths, _View
 
     tex = _texture(2)
     n, d = np.array([0.0, 0.0, -1.0]), -3.0  # a wall 3 m in front of the source keyframe (normal towards it)
@@ -231,7 +231,9 @@ def test_the_builder_refits_patch_depths_to_their_other_keyframes_where_a_depth_
     views = [_View(T, np.zeros(N), truth, T.inverse().transform(truth)[:, 2], 0, CAM.project(T.inverse().transform(truth))[0],
                    img, np.tile(n, (N, 1))) for T, img in zip(poses, imgs)]
     keep_obs = [np.array([i, N + i, 2 * N + i]) for i in range(N)]
-    pos, stats = _refit_patch_depths(views, np.repeat(np.arange(3), N), keep_obs, list(start), list(range(N)), CAM, BuildConfig())
+    obs_view = np.repeat(np.arange(3), N)
+    lp = _landmark_patches(views, obs_view, np.arange(N), start, CAM, BuildConfig())
+    pos, stats = _refit_patch_depths(views, obs_view, keep_obs, list(start), list(range(N)), lp, CAM, BuildConfig())
     good = np.arange(N) != bad
     err = np.linalg.norm(pos[good] - truth[good], axis=1)
     assert err.max() < 0.01, (np.round(err * 100, 2), stats)  # from 15 cm to under 1 cm

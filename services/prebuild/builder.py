@@ -357,7 +357,7 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
         patches.map_fp = map_fingerprint(m.lm_ids, m.lm_pos)
     refined = {}
     if patches is not None and cfg.refine_max_px > 0 and keep_obs:
-        patches.pos, refined = _refit_patch_depths(views, obs_view, keep_obs, lm_pos, lm_src, cam, cfg)
+        patches.pos, refined = _refit_patch_depths(views, obs_view, keep_obs, lm_pos, lm_src, patches, cam, cfg)
     stats = {"positions": int(len(positions)), "views": len(views), "keyframes": m.n_keyframes, "landmarks": m.n_landmarks,
              "observations": int(len(obs_all)), "candidates": int(len(obs_view)),
              "render_s": round(tm["render_s"], 2), "orb_s": round(tm["orb_s"], 2),
@@ -368,7 +368,7 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
 
 
 def _refit_patch_depths(views: list[_View], obs_view: np.ndarray, keep_obs: list[np.ndarray], lm_pos: list[np.ndarray],
-                      lm_src: list[int], cam: Camera, cfg: BuildConfig) -> tuple[np.ndarray, dict]:
+                        lm_src: list[int], lp: LandmarkPatches, cam: Camera, cfg: BuildConfig) -> tuple[np.ndarray, dict]:
     """Where patch alignment should place each landmark: its patch (from the source keyframe) is aligned into each
     other keyframe that observes it (renders at exact poses), and its depth along the source keyframe's ray is
     fitted to where it aligned (Gauss-Newton on the reprojection error). The fit is kept where it lies within
@@ -377,11 +377,10 @@ def _refit_patch_depths(views: list[_View], obs_view: np.ndarray, keep_obs: list
     render's depth stays. The patch stays valid: moving along the source ray keeps its projection there. These
     positions are for the patches only: ORB corners sit 1.5-2 px from where patches align, and keypoint poses
     solved against refitted positions got worse (a sparse scan lost frames), so ``map.msg`` keeps the mean of the
-    corners' points. Returns the positions (N, 3) and stats."""
+    corners' points. ``lp``: the landmarks' patches (:func:`_landmark_patches`). Returns the positions (N, 3) and stats."""
     t0 = time.perf_counter()
     n = len(keep_obs)
     P0 = np.array(lm_pos, np.float64).reshape(-1, 3)
-    lp = _landmark_patches(views, obs_view, np.array(lm_src, np.int64), P0, cam, cfg)
     K = cam.K
     lm_of = np.concatenate([np.full(len(o), i) for i, o in enumerate(keep_obs)])
     ob = np.concatenate(keep_obs)
@@ -400,8 +399,9 @@ def _refit_patch_depths(views: list[_View], obs_view: np.ndarray, keep_obs: list
     d = P0 - C
     s = np.linalg.norm(d, axis=1)
     d /= s[:, None]
-    R = np.array([views[v].T_wc.R.T for v in ob_view]).reshape(-1, 3, 3)  # world-to-camera of each alignment's keyframe
-    t = -np.einsum("nij,nj->ni", R, np.array([views[v].T_wc.t for v in ob_view]).reshape(-1, 3))
+    Rv = np.array([v.T_wc.R.T for v in views]).reshape(-1, 3, 3)  # every keyframe's world-to-camera, once
+    tv = -np.einsum("nij,nj->ni", Rv, np.array([v.T_wc.t for v in views]).reshape(-1, 3))
+    R, t = Rv[ob_view], tv[ob_view]  # ... and each alignment's
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
 
     def residuals(s):
