@@ -10,26 +10,21 @@ from services.localize.render_match import RMConfig, RenderMatchTracker, Status
 
 
 @pytest.fixture(scope="module")
-def rm_setup(small_site, tmp_path_factory):
+def rm_setup(small_site, small_site_db):
+    """(renderer, extractor, the small site's relocalization database as loaded from disk, its sequence, the file)."""
     import torch
 
     from services.features.xfeat import XFeatExtractor
     from services.io.scans import load_scan
     from services.io.sequence import open_sequence
-    from services.relocalize.database import DBConfig, RelocDB, build_database
-    from services.relocalize.roi import RoiConfig, sample_positions
+    from services.relocalize.database import RelocDB
     from services.render.renderer import Renderer
 
     torch.set_num_threads(1)
     out, _, _ = small_site
-    scan = load_scan(out / "scan.ply")
-    renderer = Renderer(scan)
+    renderer = Renderer(load_scan(out / "scan.ply"))
     ext = XFeatExtractor(device="cpu", top_k=1024)
-    pos = sample_positions(scan, RoiConfig(spacing=1.5))
-    db = build_database(renderer, pos, ext, DBConfig(face_size=192, top_k=512))
-    path = tmp_path_factory.mktemp("db") / "reloc.npz"
-    db.save(path)
-    return renderer, ext, RelocDB.load(path), open_sequence(out / "seq_00"), path
+    return renderer, ext, RelocDB.load(small_site_db), open_sequence(out / "seq_00"), small_site_db
 
 
 def test_database_roundtrip_and_positions_in_free_space(rm_setup, small_site):
@@ -819,37 +814,27 @@ def test_a_sparse_render_does_not_make_a_sharp_frame_read_as_blurred(rm_setup, s
     assert sum(px <= 8 for px in read) >= 3, read
 
 
-def test_a_high_resolution_frame_is_relocalized_at_the_database_s_scale(tmp_path_factory):
+def test_a_high_resolution_frame_is_relocalized_at_the_database_s_scale(rm_setup, small_site):
     """XFeat matches poorly across large scale changes: frames matched at full size with several times the
     database faces' pixels per radian (a 1280x720 camera on the GPU) relocalized nowhere for 70 frames. The
-    query is made at most reloc_px_ratio x the faces' resolution; tracking keeps the full frame."""
-    import torch
+    query is made at most reloc_px_ratio x the faces' resolution; tracking keeps the full frame. Frames of the
+    small site's walk drawn again at 960x720 (same field of view and lens) against its 192 px faces."""
+    from services.sim.site import SimSite
 
-    from services.features.xfeat import XFeatExtractor
-    from services.io.scans import load_scan
-    from services.io.sequence import open_sequence
-    from services.relocalize.database import DBConfig, build_database
-    from services.relocalize.roi import RoiConfig, sample_positions
-    from services.render.renderer import Renderer
-    from services.sim.site import config_for, generate_site
-
-    torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("hires")
-    generate_site(config_for("office", seed=3, frames=12, width=960, height=720, lidar_step_deg=0.6), out)
-    scan = load_scan(out / "scan.ply")
-    renderer, ext = Renderer(scan, device="cpu"), XFeatExtractor(device="cpu", top_k=1024)  # frames at full size
-    db = build_database(renderer, sample_positions(scan, RoiConfig(spacing=1.5)), ext, DBConfig(face_size=192, top_k=512))
-    seq = open_sequence(out / "seq_00")
-    assert seq.camera.fx > 6 * db.meta["face_size"] / 2
+    renderer, ext, db, seq, _ = rm_setup
+    cam = seq.camera.scaled(960 / seq.camera.width)
+    assert cam.fx > 6 * db.meta["face_size"] / 2
+    site = SimSite(small_site[0])
     found = 0
     for i in (6, 8, 10):
-        f = seq.read(i)
-        r = RenderMatchTracker(renderer, ext, db).process(f.image, seq.camera)
+        G = seq.groundtruth.poses[i]
+        image, _ = site.render(G, cam, lighting="camera")
+        r = RenderMatchTracker(renderer, ext, db).process(image, cam)
         if r.status == Status.RELOCALIZED:
-            dt, dr = seq.groundtruth.poses[i].distance_to(r.T_wc)
+            dt, dr = G.distance_to(r.T_wc)
             assert dt < 0.02 and dr < 0.2, (i, dt, dr)
             found += 1
-        assert RenderMatchTracker(renderer, ext, db, RMConfig(reloc_px_ratio=0)).process(f.image, seq.camera).status \
+        assert RenderMatchTracker(renderer, ext, db, RMConfig(reloc_px_ratio=0)).process(image, cam).status \
             == Status.LOST  # matched at full size: nowhere
     assert found >= 2
 
