@@ -244,27 +244,39 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
     ok = np.ones(M, bool)
     # the live window is sampled one pixel wider on every side: central differences give the gradients
     oe = np.arange(k + 2, dtype=np.float32) - (half + 1)
+    ox, oy = np.broadcast_to(oe[None, :], (k + 2, k + 2)), np.broadcast_to(oe[:, None], (k + 2, k + 2))
     u0f = u0.astype(np.float32)
     r = np.zeros_like(T)
     a, bb, c = np.zeros(M, np.float32), np.zeros(M, np.float32), np.zeros(M, np.float32)
     act = np.arange(M)  # windows still moving
+    kk = k * k
+
+    def dot(x, y):  # row-wise dot products, without a temporary (n, kk) product
+        return np.einsum("ij,ij->i", x, y)
+
     for _ in range(iterations):
         n = len(act)
         if n == 0:
             break
         cx_ = u0f[act, 0] + d[act, 0]
         cy_ = u0f[act, 1] + d[act, 1]
-        mx = np.broadcast_to(cx_[:, None, None] + oe[None, None, :], (n, k + 2, k + 2)).reshape(n * (k + 2), k + 2)
-        my = np.broadcast_to(cy_[:, None, None] + oe[None, :, None], (n, k + 2, k + 2)).reshape(n * (k + 2), k + 2)
+        mx = (cx_[:, None, None] + ox).reshape(n * (k + 2), k + 2)
+        my = (cy_[:, None, None] + oy).reshape(n * (k + 2), k + 2)
         w = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(n, k + 2, k + 2)
-        In, sd = _normalise(w[:, 1:-1, 1:-1].reshape(n, k * k))
-        Ix = (0.5 * (w[:, 1:-1, 2:] - w[:, 1:-1, :-2])).reshape(n, k * k) / sd[:, None]
-        Iy = (0.5 * (w[:, 2:, 1:-1] - w[:, :-2, 1:-1])).reshape(n, k * k) / sd[:, None]
-        ra = In - T[act]
+        In = np.ascontiguousarray(w[:, 1:-1, 1:-1]).reshape(n, kk)  # a copy: normalised in place
+        In -= In.mean(1, keepdims=True)
+        sd = np.sqrt(dot(In, In) / kk) + 1e-6  # zero mean, unit variance (as _normalise)
+        In /= sd[:, None]
+        # central differences of the normalised window: 0.5 (right - left) / sd, the scale applied to the sums
+        gx = (w[:, 1:-1, 2:] - w[:, 1:-1, :-2]).reshape(n, kk)
+        gy = (w[:, 2:, 1:-1] - w[:, :-2, 1:-1]).reshape(n, kk)
+        s1 = 0.5 / sd
+        s2 = s1 * s1
+        ra = In - (T if n == M else T[act])
         r[act] = ra
-        aa, bbb, cc = (Ix * Ix).sum(1), (Ix * Iy).sum(1), (Iy * Iy).sum(1)
+        aa, bbb, cc = dot(gx, gx) * s2, dot(gx, gy) * s2, dot(gy, gy) * s2
         a[act], bb[act], c[act] = aa, bbb, cc
-        ga, gb = (Ix * ra).sum(1), (Iy * ra).sum(1)
+        ga, gb = dot(gx, ra) * s1, dot(gy, ra) * s1
         det = aa * cc - bbb * bbb
         well = det > 1e-3 * (aa + cc) ** 2  # not an edge: along an edge the shift is free
         ok[act] &= well
