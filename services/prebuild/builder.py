@@ -386,12 +386,13 @@ def _refit_patch_depths(views: list[_View], obs_view: np.ndarray, keep_obs: list
     ob = np.concatenate(keep_obs)
     other = ob != np.array(lm_src, np.int64)[lm_of]
     lm_of, ob_view = lm_of[other], obs_view[ob[other]]
+    Rv = np.array([v.T_wc.R.T for v in views]).reshape(-1, 3, 3)  # every keyframe's world-to-camera, once
+    tv = -np.einsum("nij,nj->ni", Rv, np.array([v.T_wc.t for v in views]).reshape(-1, 3))
     q = np.zeros((len(lm_of), 2))
     ok = np.zeros(len(lm_of), bool)
     for vi in np.unique(ob_view).tolist():
         sel = np.flatnonzero(ob_view == vi)
-        T_cw = views[vi].T_wc.inverse()
-        q[sel], ok[sel], _ = align_to_patches(lp, lm_of[sel], P0[lm_of[sel]], T_cw.R, T_cw.t, K,
+        q[sel], ok[sel], _ = align_to_patches(lp, lm_of[sel], P0[lm_of[sel]], Rv[vi], tv[vi], K,
                                               views[vi].gray.astype(np.float32))
     lm_of, ob_view, q = lm_of[ok], ob_view[ok], q[ok]
     # depth s along the source ray X = C + s d, fitted to the alignments (a few Gauss-Newton steps, all at once)
@@ -399,9 +400,7 @@ def _refit_patch_depths(views: list[_View], obs_view: np.ndarray, keep_obs: list
     d = P0 - C
     s = np.linalg.norm(d, axis=1)
     d /= s[:, None]
-    Rv = np.array([v.T_wc.R.T for v in views]).reshape(-1, 3, 3)  # every keyframe's world-to-camera, once
-    tv = -np.einsum("nij,nj->ni", Rv, np.array([v.T_wc.t for v in views]).reshape(-1, 3))
-    R, t = Rv[ob_view], tv[ob_view]  # ... and each alignment's
+    R, t = Rv[ob_view], tv[ob_view]  # each alignment's world-to-camera
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
 
     def residuals(s):

@@ -185,11 +185,17 @@ def _template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.nd
                      cv2.INTER_LINEAR).reshape(M, k * k)
 
 
+def _rowdot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Row-wise dot products of (N, k) arrays, without a temporary (N, k) product."""
+    return np.einsum("ij,ij->i", x, y)
+
+
 def _normalise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Zero mean, unit variance per patch (rows of (N, k)); returns the patches and their std."""
     a = a - a.mean(1, keepdims=True)
-    s = np.sqrt((a * a).mean(1, keepdims=True)) + 1e-6
-    return a / s, s[:, 0]
+    s = np.sqrt(_rowdot(a, a) / a.shape[1]) + 1e-6
+    a /= s[:, None]
+    return a, s
 
 
 def _smeared_template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
@@ -250,10 +256,6 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
     a, bb, c = np.zeros(M, np.float32), np.zeros(M, np.float32), np.zeros(M, np.float32)
     act = np.arange(M)  # windows still moving
     kk = k * k
-
-    def dot(x, y):  # row-wise dot products, without a temporary (n, kk) product
-        return np.einsum("ij,ij->i", x, y)
-
     for _ in range(iterations):
         n = len(act)
         if n == 0:
@@ -263,10 +265,7 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
         mx = (cx_[:, None, None] + ox).reshape(n * (k + 2), k + 2)
         my = (cy_[:, None, None] + oy).reshape(n * (k + 2), k + 2)
         w = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(n, k + 2, k + 2)
-        In = np.ascontiguousarray(w[:, 1:-1, 1:-1]).reshape(n, kk)  # a copy: normalised in place
-        In -= In.mean(1, keepdims=True)
-        sd = np.sqrt(dot(In, In) / kk) + 1e-6  # zero mean, unit variance (as _normalise)
-        In /= sd[:, None]
+        In, sd = _normalise(w[:, 1:-1, 1:-1].reshape(n, kk))
         # central differences of the normalised window: 0.5 (right - left) / sd, the scale applied to the sums
         gx = (w[:, 1:-1, 2:] - w[:, 1:-1, :-2]).reshape(n, kk)
         gy = (w[:, 2:, 1:-1] - w[:, :-2, 1:-1]).reshape(n, kk)
@@ -274,9 +273,9 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
         s2 = s1 * s1
         ra = In - (T if n == M else T[act])
         r[act] = ra
-        aa, bbb, cc = dot(gx, gx) * s2, dot(gx, gy) * s2, dot(gy, gy) * s2
+        aa, bbb, cc = _rowdot(gx, gx) * s2, _rowdot(gx, gy) * s2, _rowdot(gy, gy) * s2
         a[act], bb[act], c[act] = aa, bbb, cc
-        ga, gb = dot(gx, ra) * s1, dot(gy, ra) * s1
+        ga, gb = _rowdot(gx, ra) * s1, _rowdot(gy, ra) * s1
         det = aa * cc - bbb * bbb
         well = det > 1e-3 * (aa + cc) ** 2  # not an edge: along an edge the shift is free
         ok[act] &= well
