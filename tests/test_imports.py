@@ -19,6 +19,13 @@ def test_light_modules_import_without_torch():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_patch_alignment_runs_in_numpy_where_numba_is_missing():
+    """The light client's base install has no numba: alignment then takes the numpy path instead of failing."""
+    code = ("import sys\nsys.modules['numba'] = None  # as if not installed\n"
+            "from services.prebuild.patches import alignment_backend\nassert alignment_backend(warm=True) == 'numpy'\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
 def test_cli_help_is_fast_and_lists_commands():
     out = subprocess.run([sys.executable, "-m", "services.cli", "--help"], check=True, capture_output=True, text=True).stdout
     for cmd in ("demo", "sim", "sim-view", "scan", "eval", "router", "serve", "stream"):

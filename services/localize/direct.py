@@ -67,20 +67,20 @@ class DirectPose:
         return self.cov[np.ix_(o, o)]
 
 
-_LAPLACE_DIFF = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-
-
 def noise_ratio(gray: np.ndarray) -> float:
     """The grey frame's pixel noise over its grey-level spread: Immerkaer's estimate of the noise's sigma (the mean
     absolute response to a difference of two Laplacians, blind to smooth shading and first-order edges) divided by
     the frame's standard deviation. Clean frames of the simulated walks: 0.013-0.046; a dim room filmed at a short
     exposure (a third of the light, JPEG) ~0.08; a high-ISO frame ~0.3 (benchmarks/photometric.py)."""
-    g = gray.astype(np.float32)
-    sd = float(g.std())
-    if g.shape[0] < 3 or g.shape[1] < 3 or sd < 1e-6:
+    if gray.shape[0] < 3 or gray.shape[1] < 3:
         return float("inf")
-    r = cv2.filter2D(g, -1, _LAPLACE_DIFF)[1:-1, 1:-1]
-    return math.sqrt(math.pi / 2) * float(np.abs(r).mean()) / 6.0 / sd
+    g = gray if gray.dtype in (np.uint8, np.float32) else gray.astype(np.float32)
+    sd = float(cv2.meanStdDev(g)[1][0, 0])  # one pass, float64 sums
+    if sd < 1e-6:
+        return float("inf")
+    k = np.array([1.0, -2.0, 1.0], np.float32)  # the 3x3 difference of Laplacians is this second difference squared
+    r = cv2.sepFilter2D(g, cv2.CV_16S if g.dtype == np.uint8 else cv2.CV_32F, k, k)[1:-1, 1:-1]  # exact on uint8
+    return math.sqrt(math.pi / 2) * cv2.norm(r, cv2.NORM_L1) / r.size / 6.0 / sd
 
 
 def undistorted_gray(image: np.ndarray, camera, cache: dict, denoise_above: float = float("inf"),
@@ -117,9 +117,9 @@ def _projection_jacobians(Xc: np.ndarray, fx: float, fy: float) -> tuple[np.ndar
     x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
     iz = 1.0 / np.maximum(z, 1e-6)
     a, b = fx * iz, fy * iz
-    zero = np.zeros_like(a)
-    Ju = np.stack([-a * x * y * iz, a * (z + x * x * iz), -a * y, a, zero, -a * x * iz], 1)
-    Jv = np.stack([-b * (z + y * y * iz), b * x * y * iz, b * x, zero, b, -b * y * iz], 1)
+    Ju, Jv = np.empty((len(Xc), 6)), np.empty((len(Xc), 6))
+    Ju[:, 0], Ju[:, 1], Ju[:, 2], Ju[:, 3], Ju[:, 4], Ju[:, 5] = -a * x * y * iz, a * (z + x * x * iz), -a * y, a, 0.0, -a * x * iz
+    Jv[:, 0], Jv[:, 1], Jv[:, 2], Jv[:, 3], Jv[:, 4], Jv[:, 5] = -b * (z + y * y * iz), b * x * y * iz, b * x, 0.0, b, -b * y * iz
     return Ju, Jv
 
 
@@ -140,26 +140,31 @@ def solve_motion_only(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.nda
     l11, l21, l22 = _sqrt_info(info)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
 
-    def whitened(R, t, m):
-        Xc = P[m] @ R.T + t
+    def whitened(R, t, P, uv, l11, l21, l22):
+        Xc = P @ R.T + t
         iz = 1.0 / np.maximum(Xc[:, 2], 1e-6)
-        ex = fx * Xc[:, 0] * iz + cx - uv[m, 0]
-        ey = fy * Xc[:, 1] * iz + cy - uv[m, 1]
-        return l11[m] * ex + l21[m] * ey, l22[m] * ey, Xc
+        ex = fx * Xc[:, 0] * iz + cx - uv[:, 0]
+        ey = fy * Xc[:, 1] * iz + cy - uv[:, 1]
+        return l11 * ex + l21 * ey, l22 * ey, Xc
 
     inl = np.ones(len(P), bool)
     huber = math.sqrt(CHI2_2DOF)
     e2s = np.zeros(len(P))
     for iters in rounds:
+        m = (P, uv, l11, l21, l22) if inl.all() else (P[inl], uv[inl], l11[inl], l21[inl], l22[inl])  # this round's
+        n = len(m[0])
+        J, e = np.empty((2 * n, 6)), np.empty(2 * n)  # whitened rows: (l11 Ju + l21 Jv, e1) then (l22 Jv, e2)
         for _ in range(iters):
-            e1, e2, Xc = whitened(R, t, inl)
-            e = np.sqrt(e1 * e1 + e2 * e2)
-            w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
+            e[:n], e[n:], Xc = whitened(R, t, *m)
+            r = np.sqrt(e[:n] * e[:n] + e[n:] * e[n:])
+            w = np.where(r <= huber, 1.0, huber / np.maximum(r, 1e-12))
             Ju, Jv = _projection_jacobians(Xc, fx, fy)
-            J1 = l11[inl, None] * Ju + l21[inl, None] * Jv
-            J2 = l22[inl, None] * Jv
-            H = (J1 * w[:, None]).T @ J1 + (J2 * w[:, None]).T @ J2
-            g = (J1 * w[:, None]).T @ e1 + (J2 * w[:, None]).T @ e2
+            np.multiply(m[2][:, None], Ju, out=J[:n])
+            J[:n] += m[3][:, None] * Jv
+            np.multiply(m[4][:, None], Jv, out=J[n:])
+            Jw = J * np.concatenate([w, w])[:, None]
+            H = Jw.T @ J
+            g = Jw.T @ e
             try:
                 dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
             except np.linalg.LinAlgError:
@@ -169,7 +174,7 @@ def solve_motion_only(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.nda
             t = dR @ t + dx[3:]
             if np.abs(dx).max() < 1e-6:
                 break
-        e1, e2, Xc = whitened(R, t, slice(None))
+        e1, e2, Xc = whitened(R, t, P, uv, l11, l21, l22)
         e2s = e1 * e1 + e2 * e2
         inl = (e2s <= CHI2_2DOF) & (Xc[:, 2] > 0.05)
         if inl.sum() < 6:

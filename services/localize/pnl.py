@@ -1,6 +1,8 @@
 """Prebuild & Localize: the light on-device localizer against a prebuilt stella_vslam map.
 
-No torch, no numba, no scipy: numpy + OpenCV + msgpack, so a headset or robot client imports it.
+No torch, no scipy: numpy + OpenCV + msgpack, so a headset or robot client imports it. Where numba is installed the
+patch alignment (below) runs compiled kernels (:mod:`services.prebuild.patch_kernels`, about half a tracked frame's
+CPU); without it, the same arithmetic in numpy.
 Public API (used by the Zenoh client's local fallback)::
 
     from services.localize.pnl import PnlLocalizer, PnlConfig
@@ -75,7 +77,8 @@ from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only,
                                      undistorted_gray)
-from services.prebuild.patches import PATCH_FILE, LandmarkPatches, corner_scores, map_fingerprint, search_patches
+from services.prebuild.patches import (PATCH_FILE, LandmarkPatches, alignment_backend, corner_scores, map_fingerprint,
+                                      search_patches)
 from services.prebuild.stella_map import StellaMap, read_map
 from services.relocalize.ambiguity import rival
 from services.relocalize.hint import near_hint
@@ -388,6 +391,11 @@ class PnlLocalizer:
             if patches.map_fp != map_fingerprint(m.lm_ids, m.lm_pos):  # a stale sidecar must not move poses
                 log.warning("%s belongs to another map (fingerprint %s): patch alignment off", p / PATCH_FILE, patches.map_fp)
                 patches = None
+        if patches is not None:
+            t0 = time.perf_counter()
+            backend = alignment_backend(warm=True)
+            log.info("patch alignment: %s (ready in %.2f s)", "compiled kernels (numba)" if backend == "numba" else
+                     "numpy (install numba for ~2x faster tracking)", time.perf_counter() - t0)
         return cls(m, cfg, patches)
 
     def __copy__(self) -> "PnlLocalizer":

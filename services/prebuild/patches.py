@@ -18,6 +18,7 @@ differ between the scan and the camera).
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,7 +28,7 @@ import numpy as np
 from services.io.atomic import atomic_write
 
 __all__ = ["PATCH_FILE", "PATCH_FORMAT_VERSION", "LandmarkPatches", "map_fingerprint", "sample_patches", "align_to_patches",
-           "corner_scores", "search_patches"]
+           "alignment_backend", "corner_scores", "search_patches"]
 
 PATCH_FILE = "patches.npz"
 PATCH_FORMAT_VERSION = 1
@@ -103,6 +104,39 @@ def map_fingerprint(lm_ids: np.ndarray, lm_pos: np.ndarray) -> str:
     return h.hexdigest()[:16]
 
 
+_KERNELS: object = None  # services.prebuild.patch_kernels once loaded, False when numba is missing or turned off
+
+
+def _kernels():
+    """The compiled alignment kernels (:mod:`services.prebuild.patch_kernels`), or None where numba is not installed
+    (the light client's base install) or ``CRISTAL_PATCH_KERNELS=numpy``: then numpy does the same arithmetic."""
+    global _KERNELS
+    if _KERNELS is None:
+        _KERNELS = False
+        if os.environ.get("CRISTAL_PATCH_KERNELS", "").lower() != "numpy":
+            try:
+                from services.prebuild import patch_kernels
+                _KERNELS = patch_kernels
+            except ImportError:
+                pass
+    return _KERNELS or None
+
+
+def alignment_backend(warm: bool = False) -> str:
+    """Which path :func:`align_to_patches` takes: "numba" (compiled kernels) or "numpy". ``warm``: compile the kernels
+    now (a second or so, from numba's on-disk cache after the first time) rather than on the first frame aligned."""
+    kern = _kernels()
+    if kern is None:
+        return "numpy"
+    if warm:
+        lp = LandmarkPatches(np.zeros(1, np.int64), np.zeros((1, 23, 23), np.uint8), np.array([[0.0, 0.0, -1.0]]),
+                             np.zeros(1, np.int64), np.array([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]]),
+                             np.array([[100.0, 0, 32], [0, 100, 32], [0, 0, 1]]))
+        align_to_patches(lp, np.zeros(1, np.int64), np.array([[0.0, 0.0, 2.0]]), np.eye(3), np.zeros(3), lp.K,
+                         np.zeros((64, 64), np.float32))
+    return "numba"
+
+
 def sample_patches(img: np.ndarray, centres: np.ndarray, size: int) -> np.ndarray:
     """(N, size, size) float32 bilinear samples of ``img`` on a pixel grid centred at each of ``centres`` (N, 2)."""
     h = (size - 1) / 2.0
@@ -161,6 +195,18 @@ def _template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.nd
     ``u0`` (M, 2): (M, k^2) float32. ``H``: their :func:`_homographies`, when already computed."""
     M, k = len(idx), 2 * half + 1
     H = (_homographies(lp, idx, P_w, R_cw, t_cw, K) if H is None else H).astype(np.float32)
+    # the stored patch is centred on P's projection in its source keyframe
+    S = lp.src_T_cw[lp.src[idx]]
+    Ps = np.einsum("mij,mj->mi", S[:, :, :3], P_w) + S[:, :, 3]
+    Ks = lp.K
+    ups = (Ks[0, 0] * Ps[:, 0] / Ps[:, 2] + Ks[0, 2]).astype(np.float32)
+    vps = (Ks[1, 1] * Ps[:, 1] / Ps[:, 2] + Ks[1, 2]).astype(np.float32)
+    kern = _kernels()
+    if kern is not None:
+        out = np.empty((M, k * k), np.float32)
+        kern.warp_template(lp.patches, np.ascontiguousarray(idx, np.int64), np.ascontiguousarray(H),
+                           np.ascontiguousarray(u0, np.float32), ups, vps, half, out)
+        return out
     o = np.arange(k, dtype=np.float32) - half
     gx = (u0[:, 0, None].astype(np.float32) + o)[:, None, :]  # (M, 1, k): columns
     gy = (u0[:, 1, None].astype(np.float32) + o)[:, :, None]  # (M, k, 1): rows
@@ -171,15 +217,9 @@ def _template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.nd
     wz = row(2)
     wz = np.where(np.abs(wz) > 1e-6, wz, 1e-6)
     us, vs = row(0) / wz, row(1) / wz
-    # the stored patch is centred on P's projection in its source keyframe
-    S = lp.src_T_cw[lp.src[idx]]
-    Ps = np.einsum("mij,mj->mi", S[:, :, :3], P_w) + S[:, :, 3]
-    Ks = lp.K
-    ups = (Ks[0, 0] * Ps[:, 0] / Ps[:, 2] + Ks[0, 2]).astype(np.float32)[:, None, None]
-    vps = (Ks[1, 1] * Ps[:, 1] / Ps[:, 2] + Ks[1, 2]).astype(np.float32)[:, None, None]
     hs = (lp.size - 1) / 2.0
-    px = np.clip(us - ups + hs, 0, lp.size - 1)
-    py = np.clip(vs - vps + hs, 0, lp.size - 1) + (np.arange(M, dtype=np.float32) * lp.size)[:, None, None]
+    px = np.clip(us - ups[:, None, None] + hs, 0, lp.size - 1)
+    py = np.clip(vs - vps[:, None, None] + hs, 0, lp.size - 1) + (np.arange(M, dtype=np.float32) * lp.size)[:, None, None]
     stack = lp.patches[idx].reshape(M * lp.size, lp.size).astype(np.float32)
     return cv2.remap(stack, px.reshape(M * k, k).astype(np.float32), py.reshape(M * k, k).astype(np.float32),
                      cv2.INTER_LINEAR).reshape(M, k * k)
@@ -208,50 +248,16 @@ def _smeared_template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_c
     return tmpl
 
 
-def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
-                     K: np.ndarray, gray: np.ndarray, half: int = 6, iterations: int = 8, max_px: float = 6.0,
-                     min_zncc: float = 0.75, blur: list | None = None, warp_noise_ref: float = 0.0
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where landmarks ``P_w`` (M, 3) with patches ``idx`` (M,) appear in the live frame.
-
-    The live camera is (``R_cw``, ``t_cw``, pinhole ``K``); ``gray`` is the undistorted live frame (float32).
-    For each landmark the
-    (2 half + 1)^2 pixel window around its projection is mapped through the landmark's tangent plane
-    into its source keyframe and sampled from the stored patch (the template, as the live camera would
-    see it); the live window is then shifted by Gauss-Newton until it matches. Returns the refined
-    pixels (M, 2), a mask of those that converged within ``max_px`` of the projection, on a patch
-    that is not an edge, with a zero-mean normalised correlation of at least ``min_zncc``, and each
-    measurement's shape of information (M, 2, 2): the patch's gradient structure scaled to trace 2, so a
-    corner weighs like an isotropic 1 px measurement and a near-edge mostly across the edge (along it the
-    alignment barely moves from where it started, and a pose solve must not be held there).
-
-    ``blur``: more world-to-camera poses (R, t) the camera passed through during the exposure; each template
-    is then the mean of the patch seen from all of them in the same window (a moving frame's smear).
-
-    ``warp_noise_ref`` > 0: each information is scaled by (warp_noise_ref / :func:`warp_noise_factor`)^2, so a template
-    stretched or shrunk by its warp weighs less than one seen near its source's scale, and one with the factor
-    ``warp_noise_ref`` weighs as before.
-
-    ``max_px`` must leave room for the error of the pose given: the windows converge from 4 px and more,
-    and a bound close to the pose's error keeps the windows that did not move, which pulls a pose solved
-    from them back to the pose given.
-    """
-    M = len(idx)
-    if M == 0:
-        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 2, 2))
-    k = 2 * half + 1
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    Xc = P_w @ R_cw.T + t_cw
-    z = np.maximum(Xc[:, 2], 1e-6)
-    u0 = np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy])
-    H = _homographies(lp, idx, P_w, R_cw, t_cw, K)
-    T, _ = _normalise(_smeared_template(lp, idx, P_w, R_cw, t_cw, K, u0, half, blur, H))
+def _align_windows_numpy(gray: np.ndarray, u0f: np.ndarray, T: np.ndarray, half: int, iterations: int):
+    """:func:`services.prebuild.patch_kernels.align_windows` in numpy, all windows at once (the light client's path
+    when numba is not installed): returns the shifts (M, 2), the not-an-edge mask, the last zero-mean normalised
+    correlations and the gradient structures (a, b, c) of the windows."""
+    M, k = len(u0f), 2 * half + 1
     d = np.zeros((M, 2), np.float32)
     ok = np.ones(M, bool)
     # the live window is sampled one pixel wider on every side: central differences give the gradients
     oe = np.arange(k + 2, dtype=np.float32) - (half + 1)
     ox, oy = np.broadcast_to(oe[None, :], (k + 2, k + 2)), np.broadcast_to(oe[:, None], (k + 2, k + 2))
-    u0f = u0.astype(np.float32)
     r = np.zeros_like(T)
     a, bb, c = np.zeros(M, np.float32), np.zeros(M, np.float32), np.zeros(M, np.float32)
     act = np.arange(M)  # windows still moving
@@ -285,6 +291,54 @@ def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw
         d[act] += np.where(well[:, None], step, 0.0)
         act = act[keep]
     zncc = 1.0 - 0.5 * (r * r).mean(1)  # both unit variance: mean squared difference = 2 (1 - zncc)
+    return d, ok, zncc, a, bb, c
+
+
+def align_to_patches(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray,
+                     K: np.ndarray, gray: np.ndarray, half: int = 6, iterations: int = 8, max_px: float = 6.0,
+                     min_zncc: float = 0.75, blur: list | None = None, warp_noise_ref: float = 0.0
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where landmarks ``P_w`` (M, 3) with patches ``idx`` (M,) appear in the live frame.
+
+    The live camera is (``R_cw``, ``t_cw``, pinhole ``K``); ``gray`` is the undistorted live frame (float32).
+    For each landmark the
+    (2 half + 1)^2 pixel window around its projection is mapped through the landmark's tangent plane
+    into its source keyframe and sampled from the stored patch (the template, as the live camera would
+    see it); the live window is then shifted by Gauss-Newton until it matches. Returns the refined
+    pixels (M, 2), a mask of those that converged within ``max_px`` of the projection, on a patch
+    that is not an edge, with a zero-mean normalised correlation of at least ``min_zncc``, and each
+    measurement's shape of information (M, 2, 2): the patch's gradient structure scaled to trace 2, so a
+    corner weighs like an isotropic 1 px measurement and a near-edge mostly across the edge (along it the
+    alignment barely moves from where it started, and a pose solve must not be held there).
+
+    ``blur``: more world-to-camera poses (R, t) the camera passed through during the exposure; each template
+    is then the mean of the patch seen from all of them in the same window (a moving frame's smear).
+
+    ``warp_noise_ref`` > 0: each information is scaled by (warp_noise_ref / :func:`warp_noise_factor`)^2, so a template
+    stretched or shrunk by its warp weighs less than one seen near its source's scale, and one with the factor
+    ``warp_noise_ref`` weighs as before.
+
+    ``max_px`` must leave room for the error of the pose given: the windows converge from 4 px and more,
+    and a bound close to the pose's error keeps the windows that did not move, which pulls a pose solved
+    from them back to the pose given.
+    """
+    M = len(idx)
+    if M == 0:
+        return np.zeros((0, 2)), np.zeros(0, bool), np.zeros((0, 2, 2))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    Xc = P_w @ R_cw.T + t_cw
+    z = np.maximum(Xc[:, 2], 1e-6)
+    u0 = np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy])
+    H = _homographies(lp, idx, P_w, R_cw, t_cw, K)
+    T, _ = _normalise(_smeared_template(lp, idx, P_w, R_cw, t_cw, K, u0, half, blur, H))
+    u0f = u0.astype(np.float32)
+    kern = _kernels()
+    if kern is not None:
+        d, ok, zncc, abc = np.zeros((M, 2), np.float32), np.ones(M, bool), np.zeros(M), np.zeros((M, 3))
+        kern.align_windows(np.ascontiguousarray(gray, np.float32), u0f, T, half, iterations, d, ok, zncc, abc)
+        a, bb, c = abc.T
+    else:
+        d, ok, zncc, a, bb, c = _align_windows_numpy(gray, u0f, T, half, iterations)
     ok &= (np.linalg.norm(d, axis=1) <= max_px) & (zncc >= min_zncc)
     tr = np.maximum(a + c, 1e-9)
     info = (2.0 / tr)[:, None, None] * np.stack([np.stack([a, bb], 1), np.stack([bb, c], 1)], 1)
