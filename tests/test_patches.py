@@ -7,6 +7,7 @@ import pytest
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 import services.prebuild.patches as patches_mod
+from services.kernels import ENV
 from services.prebuild.patches import LandmarkPatches, align_to_patches, sample_patches
 
 CAM = Camera(width=320, height=240, fx=260.0, fy=260.0, cx=159.5, cy=119.5)
@@ -16,10 +17,11 @@ CAM = Camera(width=320, height=240, fx=260.0, fy=260.0, cx=159.5, cy=119.5)
 def backend(request, monkeypatch):
     """Alignment runs compiled (numba, where installed) or in numpy (the light client's base install): both must hold."""
     if request.param == "numba":
-        kernels = pytest.importorskip("services.prebuild.patch_kernels")
-        monkeypatch.setattr(patches_mod, "_KERNELS", kernels)
+        pytest.importorskip("numba")
+        monkeypatch.delenv(ENV, raising=False)
     else:
-        monkeypatch.setattr(patches_mod, "_KERNELS", False)
+        monkeypatch.setenv(ENV, "numpy")
+    assert patches_mod.alignment_backend() == request.param
     return request.param
 
 
@@ -253,11 +255,11 @@ def test_the_builder_refits_patch_depths_to_their_other_keyframes_where_a_depth_
     assert stats["refine_checked"] == N and stats["refine_refitted"] == N - 1, stats
 
 
-def test_compiled_and_numpy_alignment_agree():
+def test_compiled_and_numpy_alignment_agree(monkeypatch):
     """The compiled kernels do the numpy path's arithmetic a window at a time: the same windows accepted, the same
     alignments to 1e-3 px and the same information, on a slanted wall seen from another pose, with smeared templates
     and with windows hanging over the image's edge (samples clamped there as cv2.remap's BORDER_REPLICATE)."""
-    kernels = pytest.importorskip("services.prebuild.patch_kernels")
+    pytest.importorskip("numba")
     tex = _texture(5)
     n = np.array([0.25, -0.1, -1.0])
     n /= np.linalg.norm(n)
@@ -276,13 +278,14 @@ def test_compiled_and_numpy_alignment_agree():
     turn = [(Pose.from_rotvec_t(np.radians([0.0, a, 0.0]), [0.0, 0.0, 0.0]).inverse() @ guess) for a in (-0.5, 0.5)]
     for blur in (None, [(T.R, T.t) for T in turn]):
         out = {}
-        for name, kern in (("numpy", False), ("numba", kernels)):
-            patches_mod._KERNELS = kern
-            try:
-                out[name] = align_to_patches(lp, np.arange(len(P)), P, guess.R, guess.t, CAM.K, img_live, blur=blur,
-                                             warp_noise_ref=0.25)
-            finally:
-                patches_mod._KERNELS = None
+        for name in ("numpy", "numba"):
+            if name == "numpy":
+                monkeypatch.setenv(ENV, "numpy")
+            else:
+                monkeypatch.delenv(ENV)
+            assert patches_mod.alignment_backend() == name
+            out[name] = align_to_patches(lp, np.arange(len(P)), P, guess.R, guess.t, CAM.K, img_live, blur=blur,
+                                         warp_noise_ref=0.25)
         (qa, oka, ia), (qb, okb, ib) = out["numpy"], out["numba"]
         u, _ = CAM.project(guess.transform(P))
         edge = (u[:, 0] < 8) | (u[:, 0] > CAM.width - 9) | (u[:, 1] < 8) | (u[:, 1] > CAM.height - 9)

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from services.geometry.se3 import Pose
+from services.kernels import optional_kernels
 from services.prebuild.patches import LandmarkPatches, align_to_patches
 
 __all__ = ["DirectConfig", "DirectPose", "solve_motion_only", "pose_covariance", "cov_sigmas", "align_and_solve",
@@ -150,21 +151,25 @@ def solve_motion_only(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.nda
     inl = np.ones(len(P), bool)
     huber = math.sqrt(CHI2_2DOF)
     e2s = np.zeros(len(P))
+    kern = optional_kernels("services.localize.direct_kernels")
+    H, g = np.empty((6, 6)), np.empty(6)
     for iters in rounds:
         m = (P, uv, l11, l21, l22) if inl.all() else (P[inl], uv[inl], l11[inl], l21[inl], l22[inl])  # this round's
         n = len(m[0])
         J, e = np.empty((2 * n, 6)), np.empty(2 * n)  # whitened rows: (l11 Ju + l21 Jv, e1) then (l22 Jv, e2)
         for _ in range(iters):
-            e[:n], e[n:], Xc = whitened(R, t, *m)
-            r = np.sqrt(e[:n] * e[:n] + e[n:] * e[n:])
-            w = np.where(r <= huber, 1.0, huber / np.maximum(r, 1e-12))
-            Ju, Jv = _projection_jacobians(Xc, fx, fy)
-            np.multiply(m[2][:, None], Ju, out=J[:n])
-            J[:n] += m[3][:, None] * Jv
-            np.multiply(m[4][:, None], Jv, out=J[n:])
-            Jw = J * np.concatenate([w, w])[:, None]
-            H = Jw.T @ J
-            g = Jw.T @ e
+            if kern is not None:
+                kern.normal_equations(*m, R, t, fx, fy, cx, cy, huber, H, g)
+            else:
+                e[:n], e[n:], Xc = whitened(R, t, *m)
+                r = np.sqrt(e[:n] * e[:n] + e[n:] * e[n:])
+                w = np.where(r <= huber, 1.0, huber / np.maximum(r, 1e-12))
+                Ju, Jv = _projection_jacobians(Xc, fx, fy)
+                np.multiply(m[2][:, None], Ju, out=J[:n])
+                J[:n] += m[3][:, None] * Jv
+                np.multiply(m[4][:, None], Jv, out=J[n:])
+                Jw = J * np.concatenate([w, w])[:, None]
+                H, g = Jw.T @ J, Jw.T @ e
             try:
                 dx = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
             except np.linalg.LinAlgError:

@@ -6,8 +6,8 @@ a template warped from its stored patch (2-7 templates with motion blur) and ~8 
 one ``cv2.remap`` per step; here each window is finished in registers and a small buffer.
 
 Optional: the light client's base install has no numba, and :mod:`services.prebuild.patches` falls back to numpy
-when this module cannot be imported (or when ``CRISTAL_PATCH_KERNELS=numpy``). Bilinear samples are OpenCV 5.0's
-``remap`` (INTER_LINEAR, float32) bit for bit on an FMA CPU: two lerps along x, one along y, each fused. The
+when this module cannot be imported, or with ``CRISTAL_KERNELS=numpy`` (:mod:`services.kernels`). Bilinear samples
+are OpenCV 5.0's ``remap`` (INTER_LINEAR, float32) bit for bit on an FMA CPU: two lerps along x, one along y, each fused. The
 alignment sums accumulate in float64 where numpy's einsum accumulates in float32, so the two paths agree to ~1e-5 px
 (``tests/test_patch_kernels.py``), not bit for bit.
 """
@@ -17,12 +17,52 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["warp_template", "align_windows"]
+__all__ = ["homographies", "warp_template", "align_windows"]
 
 
 @nb.njit(cache=True, inline="always", fastmath={"contract"})
 def _lerp(a, b, t):
     return a + t * (b - a)
+
+
+@nb.njit(cache=True, nogil=True)
+def homographies(Ks, src_T_cw, src, normals, idx, P_w, R, t, K, out):
+    """:func:`services.prebuild.patches._homographies` a landmark at a time: for each landmark ``idx[m]`` at ``P_w[m]``
+    with world normal ``normals[idx[m]]`` and source keyframe ``src_T_cw[src[idx[m]]]`` (intrinsics ``Ks``), the
+    live-to-source homography through its tangent plane from the live camera (``R``, ``t``, ``K``), scaled to
+    H[2, 2] = 1, into ``out`` (M, 3, 3) float64."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    ki = np.array([[1 / fx, 0.0, -cx / fx], [0.0, 1 / fy, -cy / fy], [0.0, 0.0, 1.0]])
+    A = np.empty((3, 3))
+    G = np.empty((3, 3))
+    KG = np.empty((3, 3))
+    xc, nc = np.empty(3), np.empty(3)
+    for m in range(idx.shape[0]):
+        lm = idx[m]
+        S = src_T_cw[src[lm]]
+        for i in range(3):
+            xc[i] = P_w[m, 0] * R[i, 0] + P_w[m, 1] * R[i, 1] + P_w[m, 2] * R[i, 2] + t[i]
+            nc[i] = normals[lm, 0] * R[i, 0] + normals[lm, 1] * R[i, 1] + normals[lm, 2] * R[i, 2]
+        dpl = nc[0] * xc[0] + nc[1] * xc[1] + nc[2] * xc[2]
+        for i in range(3):
+            for j in range(3):
+                A[i, j] = S[i, 0] * R[j, 0] + S[i, 1] * R[j, 1] + S[i, 2] * R[j, 2]
+        for i in range(3):
+            b = S[i, 3] - (A[i, 0] * t[0] + A[i, 1] * t[1] + A[i, 2] * t[2])
+            for j in range(3):
+                G[i, j] = dpl * A[i, j] + b * nc[j]
+        for i in range(3):
+            for j in range(3):
+                KG[i, j] = Ks[i, 0] * G[0, j] + Ks[i, 1] * G[1, j] + Ks[i, 2] * G[2, j]
+        for i in range(3):
+            for j in range(3):
+                out[m, i, j] = KG[i, 0] * ki[0, j] + KG[i, 1] * ki[1, j] + KG[i, 2] * ki[2, j]
+        h22 = out[m, 2, 2]
+        if not abs(h22) > 1e-12:
+            h22 = 1e-12
+        for i in range(3):
+            for j in range(3):
+                out[m, i, j] /= h22
 
 
 @nb.njit(cache=True, nogil=True)

@@ -18,7 +18,6 @@ differ between the scan and the camera).
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import cv2
 import numpy as np
 
 from services.io.atomic import atomic_write
+from services.kernels import optional_kernels
 
 __all__ = ["PATCH_FILE", "PATCH_FORMAT_VERSION", "LandmarkPatches", "map_fingerprint", "sample_patches", "align_to_patches",
            "alignment_backend", "corner_scores", "search_patches"]
@@ -104,22 +104,10 @@ def map_fingerprint(lm_ids: np.ndarray, lm_pos: np.ndarray) -> str:
     return h.hexdigest()[:16]
 
 
-_KERNELS: object = None  # services.prebuild.patch_kernels once loaded, False when numba is missing or turned off
-
-
 def _kernels():
-    """The compiled alignment kernels (:mod:`services.prebuild.patch_kernels`), or None where numba is not installed
-    (the light client's base install) or ``CRISTAL_PATCH_KERNELS=numpy``: then numpy does the same arithmetic."""
-    global _KERNELS
-    if _KERNELS is None:
-        _KERNELS = False
-        if os.environ.get("CRISTAL_PATCH_KERNELS", "").lower() != "numpy":
-            try:
-                from services.prebuild import patch_kernels
-                _KERNELS = patch_kernels
-            except ImportError:
-                pass
-    return _KERNELS or None
+    """The compiled alignment kernels (:mod:`services.prebuild.patch_kernels`), or None (numba not installed, or
+    ``CRISTAL_KERNELS=numpy``): then numpy does the same arithmetic."""
+    return optional_kernels("services.prebuild.patch_kernels")
 
 
 def alignment_backend(warm: bool = False) -> str:
@@ -160,6 +148,13 @@ def _homographies(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: n
     H[2, 2] = 1. Each window pixel's ray meets the plane n.X = n.P; seen from the source keyframe (X_s = A X + b,
     A = R_s R^T, b = t_s - A t) the plane maps live pixels to source pixels by H = K_s (dpl A + b n^T) K^-1, dpl = n.P
     (live camera coordinates)."""
+    kern = _kernels()
+    if kern is not None:
+        H = np.empty((len(idx), 3, 3))
+        kern.homographies(lp.K, lp.src_T_cw, lp.src, lp.normals, np.ascontiguousarray(idx, np.int64),
+                          np.ascontiguousarray(P_w, np.float64), np.ascontiguousarray(R_cw, np.float64),
+                          np.ascontiguousarray(t_cw, np.float64), np.ascontiguousarray(K, np.float64), H)
+        return H
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     Xc = P_w @ R_cw.T + t_cw
     n_c = lp.normals[idx] @ R_cw.T
@@ -189,18 +184,23 @@ def warp_noise_factor(H: np.ndarray, u0: np.ndarray) -> np.ndarray:
     return np.maximum(1.0, 1.0 / s_min) * np.maximum(1.0, s_max / 2.0) ** 1.5
 
 
-def _template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, K: np.ndarray,
-              u0: np.ndarray, half: int, H: np.ndarray | None = None) -> np.ndarray:
-    """The stored patches as the live camera (``R_cw``, ``t_cw``, ``K``) sees them in the (2 half + 1)^2 windows at
-    ``u0`` (M, 2): (M, k^2) float32. ``H``: their :func:`_homographies`, when already computed."""
-    M, k = len(idx), 2 * half + 1
-    H = (_homographies(lp, idx, P_w, R_cw, t_cw, K) if H is None else H).astype(np.float32)
-    # the stored patch is centred on P's projection in its source keyframe
+def _source_pixels(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each landmark ``P_w`` projects in its source keyframe (the stored patch's centre), float32 (u, v)."""
     S = lp.src_T_cw[lp.src[idx]]
     Ps = np.einsum("mij,mj->mi", S[:, :, :3], P_w) + S[:, :, 3]
     Ks = lp.K
-    ups = (Ks[0, 0] * Ps[:, 0] / Ps[:, 2] + Ks[0, 2]).astype(np.float32)
-    vps = (Ks[1, 1] * Ps[:, 1] / Ps[:, 2] + Ks[1, 2]).astype(np.float32)
+    return ((Ks[0, 0] * Ps[:, 0] / Ps[:, 2] + Ks[0, 2]).astype(np.float32),
+            (Ks[1, 1] * Ps[:, 1] / Ps[:, 2] + Ks[1, 2]).astype(np.float32))
+
+
+def _template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, K: np.ndarray,
+              u0: np.ndarray, half: int, H: np.ndarray | None = None, src_px: tuple | None = None) -> np.ndarray:
+    """The stored patches as the live camera (``R_cw``, ``t_cw``, ``K``) sees them in the (2 half + 1)^2 windows at
+    ``u0`` (M, 2): (M, k^2) float32. ``H``: their :func:`_homographies`, ``src_px``: their :func:`_source_pixels`,
+    when already computed."""
+    M, k = len(idx), 2 * half + 1
+    H = (_homographies(lp, idx, P_w, R_cw, t_cw, K) if H is None else H).astype(np.float32)
+    ups, vps = _source_pixels(lp, idx, P_w) if src_px is None else src_px
     kern = _kernels()
     if kern is not None:
         out = np.empty((M, k * k), np.float32)
@@ -242,9 +242,10 @@ def _smeared_template(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_c
                       K: np.ndarray, u0: np.ndarray, half: int, blur: list | None, H: np.ndarray | None = None) -> np.ndarray:
     """:func:`_template`, or with ``blur`` (more world-to-camera poses passed through during the exposure) the mean of
     the views from each pose in the same window: a moving frame's smear. ``H``: the frame pose's homographies."""
-    tmpl = _template(lp, idx, P_w, R_cw, t_cw, K, u0, half, H)
+    src_px = _source_pixels(lp, idx, P_w)
+    tmpl = _template(lp, idx, P_w, R_cw, t_cw, K, u0, half, H, src_px)
     if blur:
-        tmpl = (tmpl + sum(_template(lp, idx, P_w, R_i, t_i, K, u0, half) for R_i, t_i in blur)) / (1 + len(blur))
+        tmpl = (tmpl + sum(_template(lp, idx, P_w, R_i, t_i, K, u0, half, src_px=src_px) for R_i, t_i in blur)) / (1 + len(blur))
     return tmpl
 
 
