@@ -514,7 +514,10 @@ class PnlLocalizer:
         near = np.flatnonzero((d < self.cfg.local_radius_m) & (idx.kf_axis @ T_wc.R[:, 2] > -0.2))
         if len(near) == 0:
             near = np.argsort(d)[:20]
-        rows = np.unique(np.concatenate([idx.kf_lms[i] for i in near])) if len(near) else np.zeros(0, np.int64)
+        seen = np.zeros(len(idx.pos), bool)  # the union, sorted (np.unique hashes: 6 ms against 0.1 here)
+        for i in near:
+            seen[idx.kf_lms[i]] = True
+        rows = np.flatnonzero(seen)
         self._local_key = (c.copy(), T_wc.R[:, 2].copy())
         self._local_rows = rows
         self._local_P = np.ascontiguousarray(idx.pos[rows])
