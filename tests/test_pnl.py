@@ -591,13 +591,21 @@ def test_a_hint_of_where_the_camera_starts_resolves_a_twin_place(pnl_site, pnl_m
         assert dt < 0.015 and dr < 0.2, (i, dt, dr)
 
 
-def test_relocalization_matching_scales_past_opencv_s_knn_limit():
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_relocalization_matching_scales_past_opencv_s_knn_limit(backend, monkeypatch):
     """OpenCV's brute-force kNN takes at most 2^18 train rows at once; the survey-density warehouse map has 327,379
     landmarks and its relocalization raised cv2.error. The nearest two are now taken over chunks and merged: the same
-    answer as one kNN where one kNN works, and an answer past the limit."""
+    answer as one kNN where one kNN works, and an answer past the limit. Compiled (numba) or with OpenCV alike."""
     import cv2
 
+    from services.kernels import ENV
     from services.localize.pnl import knn2_hamming
+
+    if backend == "numba":
+        pytest.importorskip("numba")
+        monkeypatch.delenv(ENV, raising=False)
+    else:
+        monkeypatch.setenv(ENV, "numpy")
 
     rng = np.random.default_rng(0)
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -610,6 +618,10 @@ def test_relocalization_matching_scales_past_opencv_s_knn_limit():
     one = bf.knnMatch(q, small, k=2)
     b, e1, e2 = knn2_hamming(bf, q, small, chunk=777)
     assert [m[0].distance for m in one] == list(e1) and [m[1].distance for m in one] == list(e2)
+    distinct = e1 < e2  # where the nearest is nearer than the second, it is the same row
+    assert [m[0].trainIdx for m, k in zip(one, distinct) if k] == list(b[distinct])
+    b, e1, e2 = knn2_hamming(bf, q, small[:1])  # one landmark: no second nearest
+    assert (b == 0).all() and np.isfinite(e1).all() and np.isinf(e2).all()
 
 
 def _rolling_walk(pnl_site, readout_s: float, pan_deg: float):
