@@ -8,6 +8,28 @@ import pytest
 os.environ.setdefault("CRISTAL_PROGRESS", "0")
 
 
+@pytest.fixture
+def use_kernels(monkeypatch):
+    """``use_kernels("numba")`` runs the rest of the test on the compiled kernels (skipped where numba is missing),
+    ``use_kernels("numpy")`` on the numpy path a light client without numba takes (services.kernels)."""
+    from services.kernels import ENV
+
+    def use(name: str) -> None:
+        if name == "numba":
+            pytest.importorskip("numba")
+            monkeypatch.delenv(ENV, raising=False)
+        else:
+            monkeypatch.setenv(ENV, "numpy")
+    return use
+
+
+@pytest.fixture(params=["numpy", "numba"])
+def kernels(request, use_kernels):
+    """The test once on each path of the optional kernels: both must hold."""
+    use_kernels(request.param)
+    return request.param
+
+
 @pytest.fixture(scope="session")
 def small_site(tmp_path_factory):
     """Office preset, seed 3: ~0.4 M points (0.6 degree scanner step), 12 frames 200x150 with lens distortion."""

@@ -1,11 +1,9 @@
 """Direct tracking's motion-only pose solve (services.localize.direct.solve_motion_only), compiled and in numpy."""
 
 import numpy as np
-import pytest
 
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
-from services.kernels import ENV
 from services.localize.direct import solve_motion_only
 
 CAM = Camera(width=640, height=480, fx=500.0, fy=500.0, cx=319.5, cy=239.5)
@@ -31,13 +29,7 @@ def _problem(seed=0, n=200, outliers=0.2, noise_px=0.3):
     return P, obs, info, start, truth, bad
 
 
-@pytest.mark.parametrize("backend", ["numpy", "numba"])
-def test_motion_only_solve_recovers_the_pose_and_drops_outliers(backend, monkeypatch):
-    if backend == "numba":
-        pytest.importorskip("numba")
-        monkeypatch.delenv(ENV, raising=False)
-    else:
-        monkeypatch.setenv(ENV, "numpy")
+def test_motion_only_solve_recovers_the_pose_and_drops_outliers(kernels):
     P, obs, info, start, truth, bad = _problem()
     R, t, inl, rmse = solve_motion_only(P, obs, info, CAM.K, start.R, start.t)
     got = Pose(R.T, -R.T @ t)
@@ -47,14 +39,10 @@ def test_motion_only_solve_recovers_the_pose_and_drops_outliers(backend, monkeyp
     assert inl[~bad].mean() > 0.9 and 0.5 < rmse < 1.5, (inl[~bad].mean(), rmse)
 
 
-def test_compiled_and_numpy_motion_only_solves_agree(monkeypatch):
-    pytest.importorskip("numba")
+def test_compiled_and_numpy_motion_only_solves_agree(use_kernels):
     out = {}
     for backend in ("numpy", "numba"):
-        if backend == "numpy":
-            monkeypatch.setenv(ENV, "numpy")
-        else:
-            monkeypatch.delenv(ENV)
+        use_kernels(backend)
         P, obs, info, start, _, _ = _problem(seed=3)
         out[backend] = solve_motion_only(P, obs, info, CAM.K, start.R, start.t)
     (Ra, ta, ia, ra), (Rb, tb, ib, rb) = out["numpy"], out["numba"]

@@ -7,22 +7,15 @@ import pytest
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 import services.prebuild.patches as patches_mod
-from services.kernels import ENV
 from services.prebuild.patches import LandmarkPatches, align_to_patches, sample_patches
 
 CAM = Camera(width=320, height=240, fx=260.0, fy=260.0, cx=159.5, cy=119.5)
 
 
-@pytest.fixture(params=["numpy", "numba"])
-def backend(request, monkeypatch):
-    """Alignment runs compiled (numba, where installed) or in numpy (the light client's base install): both must hold."""
-    if request.param == "numba":
-        pytest.importorskip("numba")
-        monkeypatch.delenv(ENV, raising=False)
-    else:
-        monkeypatch.setenv(ENV, "numpy")
-    assert patches_mod.alignment_backend() == request.param
-    return request.param
+@pytest.fixture
+def backend(kernels):
+    assert patches_mod.alignment_backend() == kernels
+    return kernels
 
 
 def _texture(seed: int = 0) -> np.ndarray:
@@ -255,7 +248,7 @@ def test_the_builder_refits_patch_depths_to_their_other_keyframes_where_a_depth_
     assert stats["refine_checked"] == N and stats["refine_refitted"] == N - 1, stats
 
 
-def test_compiled_and_numpy_alignment_agree(monkeypatch):
+def test_compiled_and_numpy_alignment_agree(use_kernels):
     """The compiled kernels do the numpy path's arithmetic a window at a time: the same windows accepted, the same
     alignments to 1e-3 px and the same information, on a slanted wall seen from another pose, with smeared templates
     and with windows hanging over the image's edge (samples clamped there as cv2.remap's BORDER_REPLICATE)."""
@@ -279,10 +272,7 @@ def test_compiled_and_numpy_alignment_agree(monkeypatch):
     for blur in (None, [(T.R, T.t) for T in turn]):
         out = {}
         for name in ("numpy", "numba"):
-            if name == "numpy":
-                monkeypatch.setenv(ENV, "numpy")
-            else:
-                monkeypatch.delenv(ENV)
+            use_kernels(name)
             assert patches_mod.alignment_backend() == name
             out[name] = align_to_patches(lp, np.arange(len(P)), P, guess.R, guess.t, CAM.K, img_live, blur=blur,
                                          warp_noise_ref=0.25)

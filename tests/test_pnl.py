@@ -591,21 +591,13 @@ def test_a_hint_of_where_the_camera_starts_resolves_a_twin_place(pnl_site, pnl_m
         assert dt < 0.015 and dr < 0.2, (i, dt, dr)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "numba"])
-def test_relocalization_matching_scales_past_opencv_s_knn_limit(backend, monkeypatch):
+def test_relocalization_matching_scales_past_opencv_s_knn_limit(kernels):
     """OpenCV's brute-force kNN takes at most 2^18 train rows at once; the survey-density warehouse map has 327,379
     landmarks and its relocalization raised cv2.error. The nearest two are now taken over chunks and merged: the same
     answer as one kNN where one kNN works, and an answer past the limit. Compiled (numba) or with OpenCV alike."""
     import cv2
 
-    from services.kernels import ENV
     from services.localize.pnl import knn2_hamming
-
-    if backend == "numba":
-        pytest.importorskip("numba")
-        monkeypatch.delenv(ENV, raising=False)
-    else:
-        monkeypatch.setenv(ENV, "numpy")
 
     rng = np.random.default_rng(0)
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
