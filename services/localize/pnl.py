@@ -307,6 +307,22 @@ def knn2_hamming(matcher, query: np.ndarray, train: np.ndarray, chunk: int = KNN
     return best, d[:, 0], d[:, 1]
 
 
+def _warm_kernels(align: bool) -> None:
+    """Compile (or load from numba's cache) the kernels a first frame needs — the relocalization's kNN, the pose solve
+    and, with ``align``, the patch alignment — at map load, not in the first frame (a few seconds on a first run, under
+    a second from the cache); log which path tracking takes."""
+    t0 = time.perf_counter()
+    backend = alignment_backend(warm=align)
+    if backend == "numba":
+        d = np.zeros((3, 32), np.uint8)
+        knn2_hamming(cv2.BFMatcher(cv2.NORM_HAMMING), d, d)
+        P = np.array([[0.0, 0, 2], [1, 0, 2], [0, 1, 2], [1, 1, 3], [-1, 0, 3], [0, -1, 2]])
+        solve_motion_only(P, P[:, :2] / P[:, 2:] * 100 + 50, np.tile(np.eye(2), (6, 1, 1)),
+                          np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]]), np.eye(3), np.zeros(3), rounds=(1,))
+    log.info("P&L kernels: %s (ready in %.2f s)", "compiled (numba)" if backend == "numba" else
+             "numpy (numba not installed, or CRISTAL_KERNELS=numpy: tracking takes about twice the CPU)", time.perf_counter() - t0)
+
+
 def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, px: float, iterations: int) -> tuple[Pose | None, int]:
     """Camera-to-world pose from world points ``obj`` seen at undistorted pixels ``img`` (SQPnP in RANSAC, ``px``
     threshold) and its inlier count; (None, 0) when there is none, or when the solver refuses a degenerate sample
@@ -403,11 +419,7 @@ class PnlLocalizer:
             if patches.map_fp != map_fingerprint(m.lm_ids, m.lm_pos):  # a stale sidecar must not move poses
                 log.warning("%s belongs to another map (fingerprint %s): patch alignment off", p / PATCH_FILE, patches.map_fp)
                 patches = None
-        if patches is not None:
-            t0 = time.perf_counter()
-            backend = alignment_backend(warm=True)
-            log.info("patch alignment: %s (ready in %.2f s)", "compiled kernels (numba)" if backend == "numba" else
-                     "numpy (install numba for ~2x faster tracking)", time.perf_counter() - t0)
+        _warm_kernels(patches is not None)
         return cls(m, cfg, patches)
 
     def __copy__(self) -> "PnlLocalizer":
