@@ -284,3 +284,15 @@ def test_compiled_and_numpy_alignment_agree(use_kernels):
         both = oka & okb
         assert np.abs(qa[both] - qb[both]).max() < 1e-3
         np.testing.assert_allclose(ia[both], ib[both], rtol=1e-3, atol=1e-4)
+
+
+def test_a_degenerate_landmark_is_refused_not_a_crash(backend):
+    """A landmark with a NaN position, or one at the camera (its window thrown to 1e18 px), has nothing to align to:
+    refused on both paths (the compiled one must never index outside the frame or the patch)."""
+    K = np.array([[100.0, 0, 32], [0, 100, 32], [0, 0, 1]])
+    lp = LandmarkPatches(np.arange(3), np.full((3, 23, 23), 50, np.uint8), np.tile([0.0, 0.0, -1.0], (3, 1)),
+                         np.zeros(3, np.int64), np.array([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]]), K)
+    P = np.array([[0.1, 0.0, 2.0], [np.nan, 0.0, 2.0], [1e9, 0.0, 1e-9]])
+    img = _texture(7)[:64, :64].copy()
+    _, ok, _ = align_to_patches(lp, np.arange(3), P, np.eye(3), np.zeros(3), K, img)
+    assert not ok[1:].any()

@@ -7,9 +7,9 @@ one ``cv2.remap`` per step; here each window is finished in registers and a smal
 
 Optional: the light client's base install has no numba, and :mod:`services.prebuild.patches` falls back to numpy
 when this module cannot be imported, or with ``CRISTAL_KERNELS=numpy`` (:mod:`services.kernels`). Bilinear samples
-are OpenCV 5.0's ``remap`` (INTER_LINEAR, float32) bit for bit on an FMA CPU: two lerps along x, one along y, each fused. The
-alignment sums accumulate in float64 where numpy's einsum accumulates in float32, so the two paths agree to ~1e-5 px
-(``tests/test_patch_kernels.py``), not bit for bit.
+are OpenCV 5.0's ``remap`` (INTER_LINEAR, float32) bit for bit on an FMA CPU: two lerps along x, one along y, each
+fused. The alignment sums accumulate in float64 where numpy's einsum accumulates in float32, so the two paths agree
+to ~1e-5 px, not bit for bit (``tests/test_patches.py::test_compiled_and_numpy_alignment_agree``).
 """
 
 from __future__ import annotations
@@ -96,8 +96,9 @@ def warp_template(patches, idx, H, u0, ups, vps, half, out):
                 us[j] = (h[0, 0] * gx + (h[0, 1] * gy + h[0, 2])) / wz
                 vs[j] = (h[1, 0] * gx + (h[1, 1] * gy + h[1, 2])) / wz
             for j in range(k):
-                px = min(max(us[j] - ups[m] + hs, np.float32(0.0)), top)
-                py = min(max(vs[j] - vps[m] + hs, np.float32(0.0)), top) + row_off
+                px, py = us[j] - ups[m] + hs, vs[j] - vps[m] + hs
+                px = min(px if px > 0 else np.float32(0.0), top)  # clipped to the patch; NaN (a degenerate warp) to 0
+                py = min(py if py > 0 else np.float32(0.0), top) + row_off
                 fx, fy = np.floor(px), np.floor(py)
                 ax, ay = px - fx, py - fy
                 x0, r0 = int(fx), int(fy) - m * s  # 0 <= r0 <= s - 1: row_off and s - 1 + row_off are exact
@@ -150,7 +151,12 @@ def align_windows(gray, u0, T, half, iterations, d, ok, zncc, abc):
             st += T[m, q]
             stt += T[m, q] * T[m, q]
         for _ in range(iterations):
-            _sample_window(gray, u0[m, 0] + d[m, 0], u0[m, 1] + d[m, 1], half + 1, rows, w)
+            cx, cy = u0[m, 0] + d[m, 0], u0[m, 1] + d[m, 1]
+            if not (abs(cx) < 1e6 and abs(cy) < 1e6):  # NaN or absurd (a landmark at the camera): nothing to sample
+                ok[m] = False
+                zncc[m] = -1.0
+                break
+            _sample_window(gray, cx, cy, half + 1, rows, w)
             # one pass of sums; the zero-mean unit-variance window (w - mean) / sd enters them by linearity:
             # sum g ra = (sum g w - mean sum g) / sd - sum g T, sum ra^2 = kk var / sd^2 - 2 (sum w T - mean sum T) / sd + sum T^2
             q = 0
