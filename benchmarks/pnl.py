@@ -124,6 +124,9 @@ def main() -> None:
     site = Path(args.site)
     if not (site / "site.json").exists():
         sys.exit(f"{site}: no simulated site (cristal sim --preset office --seed 1 --out {site})")
+    from services.prebuild.patches import alignment_backend
+
+    print(f"P&L kernels: {alignment_backend()} (set CRISTAL_KERNELS=numpy for a light client's path without numba)\n")
     print("| site | map from | points | keyframes | landmarks | map MB (+ patches) | build s | tracking | localized | 1st frame "
           "| APE RMSE cm / deg (none) | APE median cm / deg | track CPU ms (median) | track FPS | FPS all | cold reloc |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
