@@ -252,7 +252,6 @@ def test_compiled_and_numpy_alignment_agree(use_kernels):
     """The compiled kernels do the numpy path's arithmetic a window at a time: the same windows accepted, the same
     alignments to 1e-3 px and the same information, on a slanted wall seen from another pose, with smeared templates
     and with windows hanging over the image's edge (samples clamped there as cv2.remap's BORDER_REPLICATE)."""
-    pytest.importorskip("numba")
     tex = _texture(5)
     n = np.array([0.25, -0.1, -1.0])
     n /= np.linalg.norm(n)

@@ -156,7 +156,8 @@ def solve_motion_only(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.nda
     for iters in rounds:
         m = (P, uv, l11, l21, l22) if inl.all() else (P[inl], uv[inl], l11[inl], l21[inl], l22[inl])  # this round's
         n = len(m[0])
-        J, e = np.empty((2 * n, 6)), np.empty(2 * n)  # whitened rows: (l11 Ju + l21 Jv, e1) then (l22 Jv, e2)
+        if kern is None:  # whitened rows: (l11 Ju + l21 Jv, e1) then (l22 Jv, e2)
+            J, e = np.empty((2 * n, 6)), np.empty(2 * n)
         for _ in range(iters):
             if kern is not None:
                 kern.normal_equations(*m, R, t, fx, fy, cx, cy, huber, H, g)

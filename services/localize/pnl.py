@@ -1,8 +1,8 @@
 """Prebuild & Localize: the light on-device localizer against a prebuilt stella_vslam map.
 
 No torch, no scipy: numpy + OpenCV + msgpack, so a headset or robot client imports it. Where numba is installed, the
-patch alignment and the pose solve (below) run as compiled kernels (:mod:`services.kernels`; a tracked frame's CPU
-halves); without numba, the same arithmetic runs in numpy.
+patch alignment, the pose solve (below) and the relocalization's descriptor kNN run as compiled kernels
+(:mod:`services.kernels`; a tracked frame's CPU halves); without numba, the same arithmetic runs in numpy / OpenCV.
 Public API (used by the Zenoh client's local fallback)::
 
     from services.localize.pnl import PnlLocalizer, PnlConfig
@@ -320,7 +320,8 @@ def _warm_kernels(align: bool) -> None:
         solve_motion_only(P, P[:, :2] / P[:, 2:] * 100 + 50, np.tile(np.eye(2), (6, 1, 1)),
                           np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]]), np.eye(3), np.zeros(3), rounds=(1,))
     log.info("P&L kernels: %s (ready in %.2f s)", "compiled (numba)" if backend == "numba" else
-             "numpy (numba not installed, or CRISTAL_KERNELS=numpy: tracking takes about twice the CPU)", time.perf_counter() - t0)
+             "numpy (numba not installed, or CRISTAL_KERNELS=numpy: tracking takes about twice the CPU)",
+             time.perf_counter() - t0)
 
 
 def _pnp_ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, px: float, iterations: int) -> tuple[Pose | None, int]:
