@@ -3,7 +3,8 @@
 A headset's VIO or a robot's wheels know how the camera moved while the images could not say where it is (a whip
 pan's blur, a blank wall). Rather than drop the pose and wait for relocalization, the tracker keeps the pose the
 odometry leads to, unreported, and the next frame tracks from it. Odometry drifts, so only for ``limit_s``
-seconds; after that the database decides. A frame tracked from a carried pose is reported as re-acquired
+seconds; after that the database decides. Without odometry, the last tracked velocity can carry a pose the same way,
+for a much shorter time (a few frames of a whip pan too blurred to match). A frame tracked from a carried pose is reported as re-acquired
 (RELOCALIZED), not as continuous tracking.
 """
 
@@ -19,12 +20,14 @@ class OdometryCarry:
         self.limit_s = limit_s
         self.seconds = 0.0  # how long the pose has been carried through LOST frames (0: tracked)
 
-    def lost(self, T: Pose | None, dt: float) -> Pose | None:
+    def lost(self, T: Pose | None, dt: float, limit_s: float | None = None) -> Pose | None:
         """After a LOST frame: ``T`` (where the odometry puts this frame), the pose the next frame tracks from, while
-        the carry stays within ``limit_s`` (``dt``: seconds since the previous frame; a frame at 30 Hz if unknown);
+        the carry stays within ``limit_s`` (``dt``: seconds since the previous frame; a frame at 30 Hz if unknown;
+        ``limit_s``: a shorter limit for this carry, e.g. one by constant velocity, which drifts faster);
         None when there is none or the carry has gone on too long."""
         dt = dt if dt > 0 else 1.0 / 30.0
-        if T is None or self.seconds + dt > self.limit_s:
+        limit = self.limit_s if limit_s is None else min(limit_s, self.limit_s)
+        if T is None or self.seconds + dt > limit:
             self.reset()
             return None
         self.seconds += dt
