@@ -260,9 +260,39 @@ def test_odometry_carries_the_pose_through_lost_frames(pnl_site, pnl_map):
     assert res[5].status == Status.RELOCALIZED and loc.carry.seconds == 0.0, res[5]
     dt, dr = gt[5].distance_to(res[5].T_wc)
     assert dt < 0.05 and dr < 1.0, (dt, dr)
-    assert run(no_reloc, odometry=False)[0][5].status == Status.LOST
+    no_coast = PnlConfig(reloc_min_inliers=10 ** 6, velocity_carry_s=0.0)  # (4 frames are within the velocity's coast)
+    assert run(no_coast, odometry=False)[0][5].status == Status.LOST
     expired, loc = run(PnlConfig(reloc_min_inliers=10 ** 6, odometry_carry_s=0.05), odometry=True)
     assert expired[5].status == Status.LOST and loc.T_last is None
+
+
+def test_the_last_velocity_carries_the_pose_through_a_few_lost_frames(pnl_site, pnl_map):
+    """Without odometry, a frame or two no pose fits do not cost the track: the pose coasts on at the last tracked
+    velocity (not reported) for velocity_carry_s and the next frame tracks from it; a longer gap is LOST
+    (relocalization switched off, so only the coasted pose can bring the frame back)."""
+    from services.io.sequence import open_sequence
+    from services.localize.pnl import PnlConfig, PnlLocalizer, Status
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    frames = [seq.read(i) for i in range(6)]
+    gt = [seq.groundtruth_pose(f.stamp) for f in frames]
+    blank = np.full((cam.height, cam.width), 128, np.uint8)
+
+    def run(cfg: PnlConfig):
+        loc = PnlLocalizer.load(pnl_map[0], cfg)
+        loc.seed(gt[0])
+        res = [loc.process(frames[i].image if i not in (3, 4) else blank, cam, stamp=float(frames[i].stamp))
+               for i in range(6)]  # frames 3-4 blank (a hand over the lens)
+        return res, loc
+
+    res, loc = run(PnlConfig(reloc_min_inliers=10 ** 6))
+    assert all(r.T_wc is not None for r in res[:3]) and all(r.status == Status.LOST for r in res[3:5])
+    assert res[5].status == Status.RELOCALIZED and loc.carry.seconds == 0.0, res[5]
+    dt, dr = gt[5].distance_to(res[5].T_wc)
+    assert dt < 0.02 and dr < 0.3, (dt, dr)
+    for limit in (0.0, 0.05):  # no coast, or one that two frames at 30 fps outlast
+        assert run(PnlConfig(reloc_min_inliers=10 ** 6, velocity_carry_s=limit))[0][5].status == Status.LOST
 
 
 def test_patches_of_another_map_are_refused(pnl_map, tmp_path):

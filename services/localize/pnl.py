@@ -15,7 +15,8 @@ Per frame, with a pose to start from (the previous pose moved by the device's od
 constant-velocity model, a client prior, or a seed), the landmarks of nearby keyframes that the predicted
 camera can see (distance inside the landmark's scale range, viewing angle within 60 degrees of its mean) are
 the local map. With odometry, a LOST frame's pose is carried on by it (up to ``odometry_carry_s``, not
-reported), so the next frame tracks from there rather than relocalizing.
+reported), so the next frame tracks from there rather than relocalizing; without, by the last velocity for
+a few frames (``velocity_carry_s``).
 
 Keypoint tracking: stella_vslam-style ORB on the frame, keypoints undistorted with the frame's own
 intrinsics; each projected landmark looks for the best keypoint within a small window at a compatible
@@ -135,6 +136,7 @@ class PnlConfig:
     #                         motion to predict it is re-sampled as if read at its middle row's time (as Render & Match)
     odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for
     #                                up to this long and the next frame tracks from it (as Render & Match does)
+    velocity_carry_s: float = 0.3  # without odometry, at the last velocity for up to this long (it drifts much faster)
     cell_px: int = 24  # keypoint grid for window search
     cell_capacity: int = 8
     coarse_subsample: int = 2  # the wide-window pass searches every n-th visible landmark
@@ -1100,9 +1102,12 @@ class PnlLocalizer:
         tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
         tm["cpu_ms"] = 1e3 * (time.thread_time() - c_start)  # this thread's CPU time: one core's cost on a busy machine
         if not self._plausible(r):
-            # carried on by the odometry (not reported), or dropped
-            self.T_last = self.carry.lost(pred if motion is not None and prior is None else None, dt)
-            self._vel = None
+            # carried on by the odometry or, briefly, the last velocity (not reported), or dropped
+            coast = motion is None and prior is None and self.cfg.use_velocity and self._vel is not None
+            self.T_last = self.carry.lost(pred if prior is None and (motion is not None or coast) else None, dt,
+                                          self.cfg.velocity_carry_s if coast else None)
+            if not coast or self.T_last is None:
+                self._vel = None
             self._unsure = 0
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm,
                              reason=fr.reason or "no pose")
