@@ -154,35 +154,6 @@ def test_odometry_carries_the_pose_through_lost_frames(rm_setup):
     assert expired[6].status == Status.LOST and expired[-1].T_last is None
 
 
-def test_the_last_velocity_carries_the_pose_through_a_few_lost_frames(rm_setup):
-    """Without odometry, a frame or two no pose fits (a whip pan too blurred to match, a hand over the lens) do not
-    cost the track either: the pose coasts on at the last tracked velocity (not reported) for velocity_carry_s and the
-    next frame tracks from it, with no database and no re-acquisition at the last good pose. A coasted pose is not
-    taken for a good one (``recent`` stays the last pose that fitted), and a longer gap than the coast is LOST."""
-    renderer, ext, _, seq, _ = rm_setup
-    gt = seq.groundtruth.poses
-    frames = [seq.read(i) for i in range(6)]
-    grey = np.full_like(frames[0].image, 128)
-
-    def run(cfg: RMConfig) -> list:
-        tr = RenderMatchTracker(renderer, ext, db=None, cfg=cfg)
-        out = [tr.process(frames[0].image, seq.camera, prior=gt[0], stamp=float(frames[0].stamp))]
-        for i in range(1, 6):  # frames 3-4 blank, the others the camera's own
-            out.append(tr.process(grey if i in (3, 4) else frames[i].image, seq.camera, stamp=float(frames[i].stamp)))
-            if i == 3:
-                coasting = (tr.coasted, tr.T_last is not None, tr.recent is not None and tr.recent[0] is out[2].T_wc)
-        return out + [coasting, tr]
-
-    *res, coasting, tr = run(RMConfig(recover_s=0.0))  # only the coast can bring frame 5 back
-    assert all(r.T_wc is not None for r in res[:3]) and all(r.status == Status.LOST for r in res[3:5])
-    assert coasting == (True, True, True)
-    assert res[5].status == Status.RELOCALIZED and tr.carry.seconds == 0.0 and not tr.coasted
-    dt, dr = gt[5].distance_to(res[5].T_wc)
-    assert dt < 0.02 and dr < 0.3, (dt, dr)
-    assert run(RMConfig(recover_s=0.0, velocity_carry_s=0.0))[5].status == Status.LOST
-    assert run(RMConfig(recover_s=0.0, velocity_carry_s=0.05))[5].status == Status.LOST  # 2 frames at 30 fps outlast it
-
-
 def test_direct_tracking_takes_weaker_corners_when_a_strong_one_outshines_the_rest(rm_setup, site_480):
     """Corner strength is relative to the render's strongest corner: in a close-up a few high-contrast edges (a label,
     a printed checker) leave too few corners for direct tracking, and the weaker ones are taken then, not before."""

@@ -144,11 +144,6 @@ class RMConfig:
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
     odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for up to
     #                                this long and the next frame tracks from it (a whip pan does not cost the track)
-    retry_motion_scales: tuple[float, ...] = (0.6, 1.4)  # a frame no pose fits: direct alignment again from the last
-    #                                                      motion scaled so (see _direct_retry)
-    velocity_carry_s: float = 0.3  # without odometry, at the last velocity for up to this long (it drifts much faster):
-    #                                in the office walk's whip pan (20-28 px of blur) single frames fit no pose even
-    #                                from the true one's neighbours, while the frames around them do (0.4-1.1 cm off)
     depth_radius: int = 4  # render pixels: a keypoint's depth is a plane fitted to the scan points this close ...
     depth_max_residual: float = 0.01  # ... all within this fraction of their depth of it (a depth edge is refused)
     exposure_s: float | None = None  # camera exposure time; None: per frame from the caller, else calibrated
@@ -383,8 +378,6 @@ class RenderMatchTracker:
         self.motion: tuple[Pose, float] | None = None
         self.sigma_last: float = 0.0  # the last pose's predicted 1-sigma position uncertainty (m)
         self.motion_tracked = False  # whether ``motion`` is between two tracked frames
-        self.coasted = False  # whether ``T_last`` is where the last velocity carried a LOST frame (velocity_carry_s)
-        self.coast_from: tuple[Pose, float] | None = None  # then: the last pose that fitted, and the velocity's steps since
 
     @property
     def exposure_s(self) -> float | None:
@@ -601,7 +594,7 @@ class RenderMatchTracker:
                 keep = np.flatnonzero(corner_scores(patches) >= self.cfg.direct_min_corner)[: self.cfg.direct_points]
                 log.debug("direct patches at quality %g: %d corners, %d with depth, %d corner-like", quality,
                           0 if c is None else len(c), len(uv), len(keep))
-                if len(keep) >= 2 * self.cfg.direct_min_inliers:
+                if len(keep) >= self.cfg.direct_min_inliers:
                     break
             cam = r.camera
             normals = plane_normals(uv[keep], planes[keep], cam.fx, cam.fy, cam.cx, cam.cy) @ kf.T_wc.R.T  # world axes
@@ -650,28 +643,6 @@ class RenderMatchTracker:
         cov = self._blur_scaled(d.cov_right_wc(), blur * self._base_scale(cam), power=self.cfg.direct_blur_power)
         return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * dc.sigma_px, 0, cov, 1.0,
                          float(np.degrees(1.0 / max(cam.fx, cam.fy))))
-
-    def _direct_retry(self, fr: _Frame, r: PnpResult | None) -> PnpResult | None:
-        """Direct alignment again from the last pose moved by the last motion scaled by each of
-        ``retry_motion_scales``: a turn that speeds up or slows down (the end of a whip pan slows 0.7-0.9 deg a
-        frame each frame) leaves the constant-velocity prediction beyond the patches' reach (~4 px), and a frame
-        that blurred is beyond XFeat's. The first plausible pose is kept."""
-        D, dt = saved = fr.motion
-        T0, steps = self.T_last, fr.dt_next / dt
-        if self.coasted and self.coast_from is not None:  # the whole coast scaled, from the last pose that fitted
-            T0, steps = self.coast_from[0], self.coast_from[1] + steps
-        try:
-            for k in self.cfg.retry_motion_scales:
-                fr.motion = (Pose.identity().interpolate(D, k), dt)  # the blur the templates get scales with it
-                T = T0 @ Pose.identity().interpolate(D, k * steps)
-                kf = self.kf if self.kf is not None and not self._far(T, self.kf) else self._keyframe(T, fr)
-                r2 = self._direct(kf, fr, T)
-                if self._plausible(r2) and not self._far(r2.T_wc, kf):
-                    self.kf = kf
-                    return r2
-        finally:
-            fr.motion = saved
-        return r
 
     def _unrolled_again(self, image: np.ndarray, camera: Camera, fr: _Frame, r: PnpResult, readout: float) -> PnpResult:
         """A rolling-shutter frame unrolled with the motion model's last motion, tracked to ``r``: when the motion from
@@ -793,20 +764,6 @@ class RenderMatchTracker:
         if self._good(r2):
             return r2
         return _fuse(r, r2) if fuse and self._good(r) else r  # two weak estimates do not make a reportable one
-
-    def _better(self, weak: PnpResult | None, r: PnpResult | None) -> bool:
-        """Whether a direct pose that is only plausible (``weak``) should be tracked from rather than ``r``: when ``r``
-        is not even plausible, or is less certain (in units of the report gate), as XFeat's poses are on a blurred
-        frame (their uncertainty grows as the blur squared, a direct pose's as the blur)."""
-        if weak is None:
-            return False
-        if not self._plausible(r):
-            return True
-        if self._good(r):
-            return False
-        def load(x: PnpResult) -> float:
-            return max(x.sigma_t_m / self.cfg.max_sigma_m, x.sigma_r_deg / self.cfg.max_sigma_deg)
-        return load(weak) < load(r)
 
     def _plausible(self, r: PnpResult | None) -> bool:
         """Enough inliers at a small reprojection error, uncertainty within ``track_sigma_factor`` x the
@@ -1049,7 +1006,6 @@ class RenderMatchTracker:
             if a is None or not a.hint or a.radius != radius or not np.array_equal(a.position, pos):
                 self.anchor = _Anchor(pos, stamp, None, radius, hint=True)  # (the same hint again keeps its clock)
         carry: Pose | None = None  # where the device's odometry puts this frame, should it be LOST
-        coasting = False  # ``carry`` is the last tracked velocity's, not the odometry's (see velocity_carry_s)
         if self.T_last is not None:
             T_pred = self.T_last
             if motion is not None:  # the device's odometry
@@ -1057,13 +1013,12 @@ class RenderMatchTracker:
             elif fr.motion is not None:  # constant velocity
                 D, dt = fr.motion
                 T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
-                carry, coasting = T_pred, True
             if motion is not None or (fr.motion is not None and self.motion_tracked):
                 predicted = T_pred  # (a motion averaged over a LOST gap is too rough to judge a pose by)
             kf = self.kf
             direct = self.cfg.direct_points > 0
             if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
-                new_kf = weak = None
+                new_kf = None
                 # a new render, tracked into directly (XFeat only if that fails): after a tracked frame, or from where
                 # the odometry carried a LOST one (its frames in a whip pan were XFeat's alone, too blurred to report)
                 if direct and (kf is not None or self.carry.seconds > 0):
@@ -1072,19 +1027,15 @@ class RenderMatchTracker:
                     if self._good(r) and not self._far(r.T_wc, new_kf):
                         self.kf = new_kf
                     else:
-                        weak = r if self._plausible(r) and not self._far(r.T_wc, new_kf) else None
                         r = None
                 if r is None:
                     r = self._polish(self._render_and_refine(fr, T_pred, tracking=True, kf=new_kf), fr)
-                    if self._better(weak, r):
-                        r, self.kf = weak, new_kf  # XFeat found nothing better: track on from the direct pose
                 rerendered = True
             else:
-                r = weak = None
+                r = None
                 if direct:
                     r = self._direct(kf, fr, T_pred)  # no XFeat on the frame while the prediction is close
                     if not self._good(r) or self._far(r.T_wc, kf):
-                        weak = r if self._plausible(r) and not self._far(r.T_wc, kf) else None
                         r = None
                 if r is None:
                     r = self._match(kf, fr, T_pred)
@@ -1092,10 +1043,6 @@ class RenderMatchTracker:
                         r = self._render_and_refine(fr, r.T_wc if self._plausible(r) else T_pred, tracking=True)
                         rerendered = True
                     r = self._polish(r, fr)
-                    if self._better(weak, r):
-                        r = weak  # XFeat found nothing better (a frame too blurred for it): track on from the direct pose
-            if not self._plausible(r) and direct and fr.motion is not None:
-                r = self._direct_retry(fr, r)
             if fr.motion is None and stamp is not None and self._good(r):
                 # no motion to predict the blur by (right after a relocalization not soon after the last pose): read
                 # it from the image against a render at the pose, and let it weigh on the pose's uncertainty (office
@@ -1150,15 +1097,10 @@ class RenderMatchTracker:
                 cold = near is None
         fr.tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
         if not self._plausible(r):
-            if self.T_last is not None and not self.coasted:  # (a pose the velocity carried is no one to go back to)
+            if self.T_last is not None:
                 self.recent, self.lost_frames = (self.T_last, self.stamp_last), 0
-            velocity, T_fit, coast_from = self.motion, self.T_last, self.coast_from if self.coasted else None
             self._lose()
-            self.T_last = self.carry.lost(carry, fr.dt_next, self.cfg.velocity_carry_s if coasting else None)
-            if coasting and self.T_last is not None:
-                T0, steps = coast_from or (T_fit, 0.0)
-                self.coast_from = (T0, steps + fr.dt_next / velocity[1])
-                self.motion, self.coasted = velocity, True  # the next frame is predicted by it again
+            self.T_last = self.carry.lost(carry, fr.dt_next)
             self.stamp_last = stamp if self.T_last is not None else None
             reason = fr.reason or ("no database to relocalize from" if self.db is None else "no pose")
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
@@ -1184,7 +1126,7 @@ class RenderMatchTracker:
         else:
             self.motion = None
         T_prev = self.T_last
-        self.T_last, self.stamp_last, self.recent, self.coasted = r.T_wc, stamp, None, False
+        self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
         # else weakly constrained, or where the motion cannot have taken it: no pose reported, but tracking continues
         good = (self._good(r) and (status != Status.TRACKING or self._consistent(r, predicted, fr.dt_next))
                 and rs_settled)
