@@ -231,19 +231,23 @@ def test_localizer_api_seed_and_lost_on_blank_frame(pnl_site, pnl_map):
     assert other.carry is not loc.carry and other.odometry is not loc.odometry  # per-client tracking state
 
 
-def test_odometry_carries_the_pose_through_lost_frames(pnl_site, pnl_map):
-    """As in Render & Match: with the device's odometry a LOST stretch keeps the pose (carried on by the odometry,
-    not reported) and the next good frame tracks from it; without odometry, or once the carry ran out, it cannot
-    (relocalization switched off, so only the carried pose can bring the frame back)."""
-    from services.geometry.se3 import Pose
+def _six_frames(pnl_site):
+    """The camera, the walk's first six frames, their true poses and a blank frame (a hand over the lens)."""
     from services.io.sequence import open_sequence
-    from services.localize.pnl import PnlConfig, PnlLocalizer, Status
 
     root, out, cam, box = pnl_site
     seq = open_sequence(out / "seq")
     frames = [seq.read(i) for i in range(6)]
-    gt = [seq.groundtruth_pose(f.stamp) for f in frames]
-    blank = np.full((cam.height, cam.width), 128, np.uint8)
+    return cam, frames, [seq.groundtruth_pose(f.stamp) for f in frames], np.full((cam.height, cam.width), 128, np.uint8)
+
+
+def test_odometry_carries_the_pose_through_lost_frames(pnl_site, pnl_map):
+    """As in Render & Match: with the device's odometry a LOST stretch keeps the pose (carried on by the odometry,
+    not reported) and the next good frame tracks from it; without odometry, or once the carry ran out, it cannot
+    (relocalization switched off, so only the carried pose can bring the frame back)."""
+    from services.localize.pnl import PnlConfig, PnlLocalizer, Status
+
+    cam, frames, gt, blank = _six_frames(pnl_site)
 
     def run(cfg: PnlConfig, odometry: bool):
         loc = PnlLocalizer.load(pnl_map[0], cfg)
@@ -270,14 +274,9 @@ def test_the_last_velocity_carries_the_pose_through_a_few_lost_frames(pnl_site, 
     """Without odometry, a frame or two no pose fits do not cost the track: the pose coasts on at the last tracked
     velocity (not reported) for velocity_carry_s and the next frame tracks from it; a longer gap is LOST
     (relocalization switched off, so only the coasted pose can bring the frame back)."""
-    from services.io.sequence import open_sequence
     from services.localize.pnl import PnlConfig, PnlLocalizer, Status
 
-    root, out, cam, box = pnl_site
-    seq = open_sequence(out / "seq")
-    frames = [seq.read(i) for i in range(6)]
-    gt = [seq.groundtruth_pose(f.stamp) for f in frames]
-    blank = np.full((cam.height, cam.width), 128, np.uint8)
+    cam, frames, gt, blank = _six_frames(pnl_site)
 
     def run(cfg: PnlConfig):
         loc = PnlLocalizer.load(pnl_map[0], cfg)
