@@ -3,9 +3,9 @@
 A headset's VIO or a robot's wheels know how the camera moved while the images could not say where it is (a whip
 pan's blur, a blank wall). Rather than drop the pose and wait for relocalization, the tracker keeps the pose the
 odometry leads to, unreported, and the next frame tracks from it. Odometry drifts, so only for ``limit_s``
-seconds; after that the database decides. Without odometry, the last tracked velocity can carry a pose the same way,
-for a much shorter time (a few frames of a whip pan too blurred to match). A frame tracked from a carried pose is reported as re-acquired
-(RELOCALIZED), not as continuous tracking.
+seconds; after that the database decides. Without odometry, the last tracked velocity can carry a pose the same
+way for a much shorter time (P&L: a frame or two with nothing to match). A frame tracked from a carried pose is
+reported as re-acquired (RELOCALIZED), not as continuous tracking.
 """
 
 from __future__ import annotations
