@@ -10,6 +10,7 @@ and optionally ``seed``/``reset`` fits :class:`LocalFallback`.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import time
 from dataclasses import dataclass
@@ -42,13 +43,18 @@ class LocalFallback:
         self.seeded_fresh = False
         self.errors = 0
 
-    def seed(self, T_wc: Pose) -> None:
-        """A trusted pose (from the server) for the current frame."""
+    def seed(self, T_wc: Pose, stamp: float | None = None) -> None:
+        """A trusted pose (from the server) for the current frame, captured at ``stamp`` (s): a localizer whose
+        ``seed`` takes the capture time learns the motion from consecutive seeds and predicts the first frame it
+        is handed with it (P&L: a hand-over in a fast turn)."""
         self.T_seed = T_wc
         self.seeded_fresh = True
         if hasattr(self.loc, "seed"):
             try:
-                self.loc.seed(T_wc)
+                if stamp is not None and _takes(self.loc.seed, "stamp"):
+                    self.loc.seed(T_wc, stamp=stamp)
+                else:
+                    self.loc.seed(T_wc)
             except Exception as e:  # noqa: BLE001 - the fallback must never break the stream
                 self.errors += 1
                 log.warning("local localizer rejected a seed: %s", e)
@@ -63,8 +69,9 @@ class LocalFallback:
         """``motion``: the device's odometry since the previous frame (the localizer predicts from its last pose
         with it, and carries that pose on through LOST frames); ``stamp``: capture time (s)."""
         t0 = time.perf_counter()
-        if prior is None and self.seeded_fresh and motion is None:
-            prior = self.T_seed  # the last server pose: one frame old at most while handing over
+        if prior is None and self.seeded_fresh and motion is None and not hasattr(self.loc, "seed"):
+            prior = self.T_seed  # the last server pose: one frame old at most while handing over (a seeded localizer
+            #                      already tracks from it, with the motion its seeds showed)
         self.seeded_fresh = False
         try:
             kw = {"readout_s": readout_s} if readout_s else {}  # (a rolling shutter, undone by the P&L localizer)
@@ -80,6 +87,15 @@ class LocalFallback:
         if T is not None:
             self.T_seed = T
         return LocalResult(status, T, int(getattr(r, "inliers", 0) or 0), 1e3 * (time.perf_counter() - t0))
+
+
+def _takes(fn, name: str) -> bool:
+    """Whether callable ``fn`` accepts a keyword argument ``name``."""
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
 def load_local(map_dir: str | Path) -> LocalFallback | None:

@@ -153,7 +153,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
                 source = "server"
                 st.server += 1
                 if fallback is not None:
-                    fallback.seed(T)
+                    fallback.seed(T, stamp=stamp_f)
             elif fallback is not None:
                 lr = fallback.process(frame.image, cam, motion=motions[i], stamp=stamp_f, readout_s=readout_s,
                                       near=near if not len(traj) else None)
