@@ -694,13 +694,17 @@ def test_a_rolling_shutter_frame_is_unrolled_before_tracking(pnl_site, pnl_map):
         got[readout] = [(k, T.distance_to(r.T_wc)) for k, (T, r) in enumerate(zip(poses, (loc.process(f, cam) for f in frames)))
                         if r.T_wc is not None]
     print("rolling shutter: without", got[0.0], "with", got[0.030])
-    # undeclared, the shutter's skew is reported as pose: the cold frame 12.6 cm / 1.5 deg off (no motion to undo, as
-    # below), and in the 2026-12-02 environment frame 1 too (3.9 cm / 0.71 deg), with P&L unchanged
-    assert len(got[0.0]) <= 2, got[0.0]
     assert [k for k, _ in got[0.030]] == [4, 5, 6, 7], got[0.030]
     settled = np.array([e for _, e in got[0.030]])
     rmse = np.sqrt((settled ** 2).mean(axis=0))
     assert rmse[0] < 0.015 and rmse[1] < 0.2, rmse
+    # undeclared, the shutter's skew is reported as pose: the cold frame 12.6 cm / 1.5 deg off (no motion to undo, as
+    # below) and, depending on the environment with P&L unchanged, one or two frames after it (2026-12-02: frame 1,
+    # 3.9 cm / 0.71 deg; 2026-12-03 stop 36's venv, the same packages as stop 35's: frames 1 and 2, 12.9 cm / 1.5 deg
+    # and 2.8 cm / 0.45 deg). Which frames come out is chaotic; that they are fewer and far worse is the point.
+    undeclared = np.array([e for _, e in got[0.0]]).reshape(-1, 2)
+    assert len(undeclared) < len(settled), got[0.0]
+    assert len(undeclared) == 0 or np.sqrt((undeclared[:, 0] ** 2).mean()) > 2 * rmse[0], (got[0.0], rmse)
 
 
 def test_a_hand_over_in_a_turn_is_predicted_from_the_seeds_motion(pnl_site, pnl_map):
