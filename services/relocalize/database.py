@@ -103,7 +103,10 @@ class RelocDB:
             m = mutual_nn(feats.desc, desc, min_cos=0.8)
             if len(m) < min_inliers:
                 continue
-            r = solve_pnp(feats.kpts[m[:, 0]], xyz[m[:, 1]], camera, max_error_px=max_error_px)
+            # hard RANSAC counts, not the soft refinement's: these counts decide which places are rivals, and a soft
+            # solve over every match within 5 thresholds lifts a wrong place's count too (test site: two places 7 m
+            # off reached half the true one's and made a clean frame ambiguous). The refined pose comes later.
+            r = solve_pnp(feats.kpts[m[:, 0]], xyz[m[:, 1]], camera, max_error_px=max_error_px, soft=False)
             if r is not None and r.n_inliers >= min_inliers:
                 out.append((r, int(v)))
         return out
