@@ -517,7 +517,7 @@ class RenderMatchTracker:
         r = None
         if len(uv) >= 6:
             r = solve_pnp(uv, X, fr.camera, self.cfg.ransac_px * px_factor, initial=initial,
-                          min_iterations=1000 if fr.relocalizing else self.cfg.ransac_min_iterations)
+                          min_iterations=1000 if fr.relocalizing else self.cfg.ransac_min_iterations, soft=not fr.relocalizing)
             if r is not None:  # read by _good
                 r.px_factor = px_factor
                 r.px_deg = float(np.degrees(1.0 / max(fr.camera.fx, fr.camera.fy)))
