@@ -4,8 +4,8 @@
 
 For every chosen frame of SITE/seq_00 the keyframe is rendered at the simulator's true pose (and, with --offsets N,
 at N more poses drawn 1 cm / 0.25 deg (1 sigma per axis) off it, as a tracker's last pose would be), XFeat matches
-the frame to it and the matches are Lucas-Kanade refined as Render & Match does, and the pose is solved twice from
-the same matches: ``solve_pnp(..., soft=False)`` (poselib's RANSAC and its refinement on the inliers it kept) and
+the frame to it and Lucas-Kanade refines the matches, by Render & Match's own steps, and the pose is solved twice
+from the same matches: ``solve_pnp(..., soft=False)`` (poselib's RANSAC and its refinement on the inliers it kept) and
 ``soft=True`` (then a Cauchy refinement over every match within 5 thresholds, services.geometry.pnp._soft_refine).
 Prints a line per render and a table: RMS / median / max error against the truth, and the share of poses whose
 angle error exceeds 3 x their own reported 1 sigma.
@@ -30,28 +30,19 @@ from services.geometry.se3 import Pose  # noqa: E402
 from services.io.scans import load_scan  # noqa: E402
 from services.io.sequence import open_sequence  # noqa: E402
 from services.localize.cli import _tracking_extractor  # noqa: E402
-from services.localize.render_match import RMConfig, normalised_gray, refine_matches_lk  # noqa: E402
+from services.localize.render_match import RenderMatchTracker, RMConfig, _Frame  # noqa: E402
 from services.render.renderer import Renderer  # noqa: E402
 
 
-def matches(ext, renderer, image, cam, T_render, scale, cfg: RMConfig):
-    """Frame keypoints (frame pixels, LK-refined) and the world points of the render's matched keypoints."""
-    camr = cam.scaled(scale) if scale < 1 else cam
-    r = renderer.render(T_render, camr)
-    kf = ext.extract(r.rgb, max_side=10 ** 6)
-    X, ok, _ = r.surface_points(kf.kpts, cfg.depth_radius, cfg.depth_max_residual)
-    kf, X = kf.subset(ok), X[ok]
-    live = ext.extract(image, max_side=round(scale * max(image.shape[:2])))
-    m = mutual_nn(live.desc, kf.desc, cfg.match_cos)
-    uv, Xm = live.kpts[m[:, 0]].astype(np.float64), X[m[:, 1]]
-    g = normalised_gray(r.rgb)
-    size = (g.shape[1], g.shape[0])
-    sx, sy = size[0] / cam.width, size[1] / cam.height
-    start = np.column_stack([(uv[:, 0] + 0.5) * sx - 0.5, (uv[:, 1] + 0.5) * sy - 0.5])
-    q, conv = refine_matches_lk(g, normalised_gray(image, size), kf.kpts[m[:, 1]].astype(np.float64), start,
-                                cfg.lk_window, cfg.lk_max_px)
-    q = np.column_stack([(q[:, 0] + 0.5) / sx - 0.5, (q[:, 1] + 0.5) / sy - 0.5])
-    return np.where(conv[:, None], q, uv), Xm
+def matches(tracker: RenderMatchTracker, image, cam, T_render):
+    """What the tracker solves from for a keyframe rendered at ``T_render``: frame keypoints (frame pixels,
+    Lucas-Kanade refined against the render) and the world points of the render's matched keypoints."""
+    fr = _Frame(image, cam, {}, None, 0.0, None)
+    kf = tracker._keyframe(T_render, fr)
+    feats, xyz, gray = tracker._sharp_points(kf, fr)
+    live = tracker._live(fr, kf.scale)
+    m = mutual_nn(live.desc, feats.desc, tracker.cfg.match_cos)
+    return tracker._refine(fr, live.kpts[m[:, 0]].astype(np.float64), xyz[m[:, 1]], feats.kpts[m[:, 1]], gray)
 
 
 def main() -> int:
@@ -68,9 +59,8 @@ def main() -> int:
         raise SystemExit(f"{site}/seq_00 has no groundtruth.txt")
     gt = seq.groundtruth.as_dict()
     renderer = Renderer(load_scan(site / "scan.ply"), device="cpu")
-    ext = _tracking_extractor(renderer)
     cfg, cam = RMConfig(), seq.camera
-    scale = min(1.0, (ext.max_side or max(cam.width, cam.height)) / max(cam.width, cam.height))
+    tracker = RenderMatchTracker(renderer, _tracking_extractor(renderer), None, cfg)
     rng = np.random.default_rng(args.seed)
     res: dict[bool, list] = {False: [], True: []}
     first, last, step = args.frames
@@ -80,7 +70,7 @@ def main() -> int:
         for o in range(1 + args.offsets):
             off = np.zeros(6) if o == 0 else np.concatenate([rng.normal(0, 0.01, 3), np.radians(rng.normal(0, 0.25, 3))])
             T_r = T @ Pose.from_rotvec_t(off[3:], off[:3])
-            uv, X = matches(ext, renderer, f.image, cam, T_r, scale, cfg)
+            uv, X = matches(tracker, f.image, cam, T_r)
             line, rows = f"{i:4d} render {o}:", {}
             for soft in (False, True):
                 r = solve_pnp(uv, X, cam, cfg.ransac_px, initial=T_r, min_iterations=cfg.ransac_min_iterations, soft=soft)

@@ -1,7 +1,7 @@
 """On-device fallback: the light P&L localizer behind a small interface (no torch).
 
 The client needs three things from a local localizer: ``seed(T_wc)`` with each server pose (so
-it is warm when needed), ``process(image, camera)`` for a frame the server did not localize, and
+it is warm when needed; ``seed(T_wc, stamp=)`` when it takes the capture time, to learn the motion), ``process(image, camera)`` for a frame the server did not localize, and
 ``reset()``. :func:`load_local` wraps :class:`services.localize.pnl.PnlLocalizer` (issue 5); any
 object with ``process(image, camera, prior, motion=, stamp=) -> result`` (``.status``, ``.T_wc``, ``.inliers``;
 ``motion``: the device's odometry since the previous frame or None, ``stamp``: capture time in seconds or None)
@@ -42,6 +42,8 @@ class LocalFallback:
         self.T_seed: Pose | None = None
         self.seeded_fresh = False
         self.errors = 0
+        self._seeds = hasattr(localizer, "seed")
+        self._seeds_with_stamp = self._seeds and _takes(localizer.seed, "stamp")  # (checked once, not per frame)
 
     def seed(self, T_wc: Pose, stamp: float | None = None) -> None:
         """A trusted pose (from the server) for the current frame, captured at ``stamp`` (s): a localizer whose
@@ -49,9 +51,9 @@ class LocalFallback:
         is handed with it (P&L: a hand-over in a fast turn)."""
         self.T_seed = T_wc
         self.seeded_fresh = True
-        if hasattr(self.loc, "seed"):
+        if self._seeds:
             try:
-                if stamp is not None and _takes(self.loc.seed, "stamp"):
+                if stamp is not None and self._seeds_with_stamp:
                     self.loc.seed(T_wc, stamp=stamp)
                 else:
                     self.loc.seed(T_wc)
@@ -69,7 +71,7 @@ class LocalFallback:
         """``motion``: the device's odometry since the previous frame (the localizer predicts from its last pose
         with it, and carries that pose on through LOST frames); ``stamp``: capture time (s)."""
         t0 = time.perf_counter()
-        if prior is None and self.seeded_fresh and motion is None and not hasattr(self.loc, "seed"):
+        if prior is None and self.seeded_fresh and motion is None and not self._seeds:
             prior = self.T_seed  # the last server pose: one frame old at most while handing over (a seeded localizer
             #                      already tracks from it, with the motion its seeds showed)
         self.seeded_fresh = False

@@ -89,7 +89,25 @@ def _pose_wc(pose) -> Pose:
     return Pose(quat_to_rotmat([pose.q[1], pose.q[2], pose.q[3], pose.q[0]]), np.asarray(pose.t)).inverse()
 
 
-def _soft_refine(T_wc: Pose, inl: np.ndarray, camera: Camera, cam: dict, uvu: np.ndarray, X_w: np.ndarray,
+def _poselib_pose(T_wc: Pose):
+    """A camera-to-world pose as poselib's (world-to-camera, quaternion w, x, y, z): :func:`_pose_wc`'s inverse."""
+    import poselib
+
+    T_cw = T_wc.inverse()
+    q = T_cw.quat_xyzw()
+    pose = poselib.CameraPose()
+    pose.q = [q[3], q[0], q[1], q[2]]
+    pose.t = T_cw.t
+    return pose
+
+
+def _poselib_camera(camera: Camera) -> dict:
+    """The pinhole camera poselib solves in (keypoints undistorted to it first)."""
+    return {"model": "PINHOLE", "width": camera.width, "height": camera.height,
+            "params": [camera.fx, camera.fy, camera.cx, camera.cy]}
+
+
+def _soft_refine(T_wc: Pose, inl: np.ndarray, camera: Camera, uvu: np.ndarray, X_w: np.ndarray,
                  max_error_px: float) -> tuple[Pose, np.ndarray]:
     """RANSAC's pose refined once more over every match within SOFT_GATE thresholds of it, with a Cauchy loss
     (scale SOFT_SCALE thresholds) instead of its hard inlier set; the inliers then re-counted at the threshold.
@@ -105,12 +123,7 @@ def _soft_refine(T_wc: Pose, inl: np.ndarray, camera: Camera, cam: dict, uvu: np
     near = reprojection_errors(T_wc, camera, uvu, X_w) < SOFT_GATE * max_error_px
     if near.sum() < 6:
         return T_wc, inl
-    T_cw = T_wc.inverse()
-    q = T_cw.quat_xyzw()
-    init = poselib.CameraPose()
-    init.q = [q[3], q[0], q[1], q[2]]
-    init.t = T_cw.t
-    pose, _ = poselib.refine_absolute_pose(uvu[near], X_w[near], init, cam, {
+    pose, _ = poselib.refine_absolute_pose(uvu[near], X_w[near], _poselib_pose(T_wc), _poselib_camera(camera), {
         "loss_type": "CAUCHY", "loss_scale": SOFT_SCALE * max_error_px, "max_iterations": 50})
     T_soft = _pose_wc(pose)
     inl_soft = reprojection_errors(T_soft, camera, uvu, X_w) < max_error_px
@@ -131,29 +144,20 @@ def solve_pnp(uv: np.ndarray, X_w: np.ndarray, camera: Camera, max_error_px: flo
     if len(uv) < max(min_points, 4):
         return None
     uvu = undistort_pixels(camera, uv) if camera.is_distorted else uv
-    cam = {"model": "PINHOLE", "width": camera.width, "height": camera.height,
-           "params": [camera.fx, camera.fy, camera.cx, camera.cy]}
     # min_iterations: poselib's default 1000 even when the inlier ratio says 70 suffice; tracking with
     # many inliers can stop early (4.5 -> 1.2 ms on 300 matches), hard relocalizations gain from the rest
     ransac = {"max_reproj_error": float(max_error_px), "max_iterations": int(max_iterations),
               "min_iterations": int(min(min_iterations, max_iterations)),
               "success_prob": 0.9999}
     bundle = {"loss_type": "CAUCHY", "loss_scale": float(max_error_px) * 0.5, "max_iterations": 50}
-    kw = {}
-    if initial is not None:
-        T_cw = initial.inverse()
-        q = T_cw.quat_xyzw()
-        init = poselib.CameraPose()
-        init.q = [q[3], q[0], q[1], q[2]]
-        init.t = T_cw.t
-        kw["initial_pose"] = init
-    pose, info = poselib.estimate_absolute_pose(uvu, X_w, cam, ransac, bundle, **kw)
+    kw = {} if initial is None else {"initial_pose": _poselib_pose(initial)}
+    pose, info = poselib.estimate_absolute_pose(uvu, X_w, _poselib_camera(camera), ransac, bundle, **kw)
     inl = np.asarray(info.get("inliers", []), bool)
     if inl.sum() < min_points:
         return None
     T_wc = _pose_wc(pose)
     if soft:
-        T_wc, inl = _soft_refine(T_wc, inl, camera, cam, uvu, X_w, float(max_error_px))
+        T_wc, inl = _soft_refine(T_wc, inl, camera, uvu, X_w, float(max_error_px))
     err = reprojection_errors(T_wc, camera, uvu, X_w)
     rmse = float(np.sqrt(np.mean(err[inl] ** 2)))
     cov = pose_covariance(T_wc, camera, X_w[inl], max(rmse, 0.3))
