@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -51,10 +52,11 @@ def inputs(site: Path, method: str) -> list[str] | None:
     return None
 
 
-def run(site: Path, method: str, out: Path) -> dict:
-    """One walk: the localizer's JSON summary plus the frames reported off (beyond OFF_M or OFF_DEG)."""
+def run(site: Path, method: str, out: Path, extra: tuple[str, ...] = ()) -> dict:
+    """One walk: the localizer's JSON summary plus the frames reported off (beyond OFF_M or OFF_DEG). ``extra``: more
+    `cristal localize` arguments."""
     cmd = [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main(sys.argv[1:]))",
-           "-q", "localize", *inputs(site, method), "--out", str(out)]
+           "-q", "localize", *inputs(site, method), "--out", str(out), *extra]
     t0 = time.perf_counter()
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     if res.returncode != 0:
@@ -91,6 +93,9 @@ def main() -> int:
     ap.add_argument("--baseline", type=Path, default=Path(__file__).with_name("walks_baseline.json"))
     ap.add_argument("--tolerance", type=int, default=2, help="frames a walk may lose before it counts as a regression")
     ap.add_argument("--update", action="store_true", help="write this run's numbers into --baseline")
+    ap.add_argument("--localize-args", default="", metavar="ARGS",
+                    help="more `cristal localize` arguments for every walk, one string (--localize-args='--max-side 360'); "
+                         "compare against a baseline run with the same ones, not the committed one")
     ap.add_argument("--out", type=Path, default=Path("runs/walks"), help="trajectories are written here")
     args = ap.parse_args()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -106,7 +111,7 @@ def main() -> int:
             if not (site / "seq_00").is_dir() or inputs(site, method) is None:
                 continue
             key = f"{name}/{method}"
-            r = now[key] = run(site, method, args.out / f"{name}-{method}.txt")
+            r = now[key] = run(site, method, args.out / f"{name}-{method}.txt", tuple(shlex.split(args.localize_args)))
             b = base.get(key)
             v = verdict(r, b, args.tolerance)
             bad += v.startswith("**REGRESSION")
