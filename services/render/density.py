@@ -115,7 +115,7 @@ def floor_plan(xy_points: np.ndarray, positions: np.ndarray, spacing: np.ndarray
     hi = np.maximum(np.percentile(xy_points, 99.8, axis=0), positions[:, :2].max(0))
     xy_points = xy_points[np.all((xy_points >= lo) & (xy_points <= hi), axis=1)]
     margin, head = 30, 70
-    scale = (width_px - 2 * margin) / max(hi[0] - lo[0], 1e-6)
+    scale = min((width_px - 2 * margin) / max(hi[0] - lo[0], 1e-6), 1400 / max(hi[1] - lo[1], 1e-6))  # a long site
     h = int((hi[1] - lo[1]) * scale) + 2 * margin + head
     img = np.full((h, width_px, 3), 255, np.uint8)
 
