@@ -760,6 +760,42 @@ def test_direct_tracking_needs_no_features_on_the_frame_and_stays_accurate(rm_se
         assert featureless >= 4 if direct else featureless == 0, (direct, featureless)
 
 
+def test_an_uncertain_direct_pose_is_checked_by_xfeat(rm_setup, site_480):
+    """A direct pose far less certain than the gate (few corners) is checked by XFeat from it: where they disagree
+    the more certain one is kept, where they agree they combine. A direct pose well inside its share of the gate
+    runs no XFeat. Real render, real XFeat, against ground truth."""
+    import dataclasses
+
+    from services.geometry.pnp import PnpResult
+    from services.geometry.se3 import Pose
+    from services.io.sequence import open_sequence
+    from services.localize.render_match import _Frame
+
+    renderer, ext, _, _, _ = rm_setup
+    _, out, cam, _ = site_480
+    seq = open_sequence(out / "seq")
+    f = seq.read(3)
+    T = seq.groundtruth_pose(f.stamp)
+    tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig())
+    fr = _Frame(f.image, cam, {}, None, 0.0, None)
+    kf = tr._keyframe(T, fr)
+    off = T @ Pose.from_rotvec_t(np.radians([0.0, 0.15, 0.0]), [0.025, 0.0, 0.0])  # 2.5 cm, 0.15 deg off
+    cov = np.diag([0.006 ** 2] * 3 + [np.radians(0.05) ** 2] * 3)  # reported at 0.6 cm: inside the 1 cm gate
+    direct = PnpResult(off, np.ones(80, bool), 0.8, 0, cov, px_deg=0.116)
+    assert tr._good(direct)
+    r = tr._checked(direct, kf, fr)
+    assert "features_ms" in fr.tm  # XFeat ran on the frame
+    dt, dr = T.distance_to(r.T_wc)
+    assert dt < 0.008 and r.sigma_t_m < direct.sigma_t_m, (dt, dr, r.sigma_t_m)  # XFeat's pose, not the 2.5 cm one
+    sure = dataclasses.replace(direct, cov=cov / 16)  # 0.15 cm: no check
+    fr2 = _Frame(f.image, cam, {}, None, 0.0, None)
+    assert tr._checked(sure, kf, fr2) is sure and "features_ms" not in fr2.tm
+    near = dataclasses.replace(direct, T_wc=T @ Pose.from_rotvec_t(np.zeros(3), [0.002, 0.0, 0.0]))  # agrees
+    r3 = tr._checked(near, kf, _Frame(f.image, cam, {}, None, 0.0, None))
+    assert r3.sigma_t_m < near.sigma_t_m  # combined: more certain than the direct pose alone
+    assert T.distance_to(r3.T_wc)[0] < 0.006
+
+
 def test_a_relocalizing_frame_s_blur_is_read_from_the_image(rm_setup, site_480):
     """With no motion to predict it, a relocalized frame's blur is read against the render at its pose (the
     line kernel that, blurring the render, correlates best with the frame): a sharp frame reads as sharp,

@@ -175,6 +175,8 @@ class RMConfig:
     #                              877 of 900 but the high-ISO ones 0.48-0.54 cm instead of 0.42-0.44 (benchmarks/photometric.py)
     direct_blur_power: float = 1.0  # a direct pose's covariance grows as (blur / blur_sigma_px)^this (XFeat's: ^2)
     direct_min_corner: float = 0.2  # those patches' corner score (0 edge or flat .. 0.5 isotropic corner)
+    direct_check: float = 0.4  # a direct pose less certain than this fraction of the report gate is checked by XFeat
+    direct_check_xfeat_scale: float = 2.0  # ... whose 1 sigma is taken this many times larger there
     direct_corner_quality: tuple[float, ...] = (0.005, 0.002)  # corner strength, relative to the render's strongest, for
     #                                     those patches; the next only when the first leaves fewer than direct_min_inliers
     #                                     (a close-up render: a few strong label edges outshine the rest)
@@ -765,6 +767,26 @@ class RenderMatchTracker:
             return r2
         return _fuse(r, r2) if fuse and self._good(r) else r  # two weak estimates do not make a reportable one
 
+    def _checked(self, r: PnpResult, kf: Keyframe, fr: _Frame) -> PnpResult:
+        """A direct pose less certain than ``direct_check`` x the report gate, checked by XFeat from it: combined with
+        XFeat's pose where the two agree, and where they do not, the more certain of the two. Direct alignment has
+        fewer measurements than XFeat has matches (office walk frames 118-145, a view with few corners: 62-130
+        aligned patches at 0.3-0.7 cm 1 sigma and 0.3-2.5 cm off at the true pose, XFeat 350-430 inliers at 0.1 cm
+        and 0.01-0.3 cm off; the walk reported 2.4-2.9 cm there, benchmarks/RESULTS.md stop 37)."""
+        c = self.cfg.direct_check
+        scale = max(1.0, r.px_deg / self.cfg.sigma_ref_px_deg)
+        if c <= 0 or (r.sigma_t_m <= c * self.cfg.max_sigma_m * scale and r.sigma_r_deg <= c * self.cfg.max_sigma_deg * scale):
+            return r
+        x = self._match(kf, fr, r.T_wc)
+        if not self._good(x) or self._far(x.T_wc, kf):
+            return r
+        if x.cov is not None:  # XFeat's poses err about twice their scatter (those frames: 0.17 cm at 0.1 cm 1 sigma)
+            x = dataclasses.replace(x, cov=x.cov * self.cfg.direct_check_xfeat_scale ** 2)
+        f = _fuse(x, r)
+        if f.sigma_t_m <= min(x.sigma_t_m, r.sigma_t_m) + 1e-9:  # they agree (a disagreement inflates the result)
+            return f
+        return x if x.sigma_t_m < r.sigma_t_m else r
+
     def _plausible(self, r: PnpResult | None) -> bool:
         """Enough inliers at a small reprojection error, uncertainty within ``track_sigma_factor`` x the
         report gate: a pose to keep tracking from, reported only when also ``_good``."""
@@ -1026,6 +1048,7 @@ class RenderMatchTracker:
                     r = self._direct(new_kf, fr, T_pred)
                     if self._good(r) and not self._far(r.T_wc, new_kf):
                         self.kf = new_kf
+                        r = self._checked(r, new_kf, fr)
                     else:
                         r = None
                 if r is None:
@@ -1037,6 +1060,8 @@ class RenderMatchTracker:
                     r = self._direct(kf, fr, T_pred)  # no XFeat on the frame while the prediction is close
                     if not self._good(r) or self._far(r.T_wc, kf):
                         r = None
+                    else:
+                        r = self._checked(r, kf, fr)
                 if r is None:
                     r = self._match(kf, fr, T_pred)
                     if not self._good(r) or self._far(r.T_wc, kf) or r.n_inliers < self.cfg.rerender_inlier_ratio * kf.ref_inliers:
