@@ -771,7 +771,7 @@ class RenderMatchTracker:
         """A direct pose less certain than ``direct_check`` x the report gate, checked by XFeat from it: combined with
         XFeat's pose where the two agree, and where they do not, the more certain of the two. Direct alignment has
         fewer measurements than XFeat has matches (office walk frames 118-145, a view with few corners: 62-130
-        aligned patches at 0.3-0.7 cm 1 sigma and 0.3-2.5 cm off at the true pose, XFeat 350-430 inliers at 0.1 cm
+        aligned patches at 0.2-0.7 cm 1 sigma and 0.2-2.5 cm off at the true pose, XFeat 350-430 inliers at 0.1 cm
         and 0.01-0.3 cm off; the walk reported 2.4-2.9 cm there, benchmarks/RESULTS.md stop 37)."""
         c = self.cfg.direct_check
         scale = max(1.0, r.px_deg / self.cfg.sigma_ref_px_deg)
