@@ -98,6 +98,7 @@ def main() -> int:
                          "compare against a baseline run with the same ones, not the committed one")
     ap.add_argument("--out", type=Path, default=Path("runs/walks"), help="trajectories are written here")
     args = ap.parse_args()
+    extra = tuple(shlex.split(args.localize_args))  # the same for every walk
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     names = args.sites or sorted(p.name for p in args.root.iterdir() if (p / "seq_00" / "rgb.txt").is_file())
     base = json.loads(args.baseline.read_text()) if args.baseline.is_file() else {}
@@ -111,7 +112,7 @@ def main() -> int:
             if not (site / "seq_00").is_dir() or inputs(site, method) is None:
                 continue
             key = f"{name}/{method}"
-            r = now[key] = run(site, method, args.out / f"{name}-{method}.txt", tuple(shlex.split(args.localize_args)))
+            r = now[key] = run(site, method, args.out / f"{name}-{method}.txt", extra)
             b = base.get(key)
             v = verdict(r, b, args.tolerance)
             bad += v.startswith("**REGRESSION")

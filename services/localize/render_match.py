@@ -773,9 +773,7 @@ class RenderMatchTracker:
         fewer measurements than XFeat has matches (office walk frames 118-145, a view with few corners: 62-130
         aligned patches at 0.2-0.7 cm 1 sigma and 0.2-2.5 cm off at the true pose, XFeat 350-430 inliers at 0.1 cm
         and 0.01-0.3 cm off; the walk reported 2.4-2.9 cm there, benchmarks/RESULTS.md stop 37)."""
-        c = self.cfg.direct_check
-        scale = max(1.0, r.px_deg / self.cfg.sigma_ref_px_deg)
-        if c <= 0 or (r.sigma_t_m <= c * self.cfg.max_sigma_m * scale and r.sigma_r_deg <= c * self.cfg.max_sigma_deg * scale):
+        if self.cfg.direct_check <= 0 or self._good(r, self.cfg.direct_check):  # (r passed the gate: only its sigmas differ)
             return r
         x = self._match(kf, fr, r.T_wc)
         if not self._good(x) or self._far(x.T_wc, kf):
