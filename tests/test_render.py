@@ -250,7 +250,7 @@ def test_measured_depth_backprojects_onto_true_surfaces(site_renderer):
 
 
 def test_grow_colours_closes_gaps_between_points_only():
-    from services.render.renderer import _grow_cv2, _grow_torch, grow_colours
+    from services.render.renderer import _grow_numba, _grow_torch, grow_colours
 
     H, W = 48, 64
     v, u = np.mgrid[0:H, 0:W]
@@ -266,8 +266,68 @@ def test_grow_colours_closes_gaps_between_points_only():
     assert not bool(m[0, 0, :, 36:].any())  # nothing grows beyond the radius
     c2, m2 = _grow_torch(rgb, mask, 3)  # the CUDA path's steps, here on the CPU
     assert torch.equal(m2, m) and torch.allclose(c2, c, atol=1e-6)
-    assert torch.equal(_grow_cv2(rgb, mask, 3)[1], m)
+    assert torch.equal(_grow_numba(rgb, mask, 3)[1], m)
 
+
+def _edge_shift_rms(picture: np.ndarray, truth: np.ndarray, truth_depth: np.ndarray) -> float:
+    """RMS displacement (pixels, across the edge) of ``picture``'s texture edges from ``truth``'s: dense optical flow
+    at the strongest tenth of the truth's gradients, away from depth edges."""
+    import cv2
+
+    a, b = (cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) for x in (truth, picture))
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(a, b, None)
+    gx, gy = (cv2.Sobel(a.astype(np.float32), cv2.CV_32F, dx, 1 - dx, ksize=3) for dx in (1, 0))
+    g = np.hypot(gx, gy)
+    d = np.where(truth_depth > 0, truth_depth, 1e3)
+    flat = cv2.dilate(d, np.ones((5, 5))) / cv2.erode(d, np.ones((5, 5))) < 1.1
+    m = (g > np.percentile(g, 90)) & flat
+    m[:8], m[-8:], m[:, :8], m[:, -8:] = False, False, False, False
+    shift = (flow[..., 0] * gx + flow[..., 1] * gy)[m] / g[m]
+    return float(np.sqrt(np.mean(shift ** 2)))
+
+
+def test_a_supersampled_render_keeps_the_depth_and_draws_edges_where_the_scene_has_them(site_renderer):
+    """Supersampled (Render & Match's keyframes), a render keeps the plain render's measured depth, pixel for pixel,
+    and its picture's edges sit closer to the simulator's own picture of the scene: points are placed within a
+    quarter of a pixel instead of half, and a pixel on an edge takes the share of each side."""
+    from services.io.sequence import open_sequence
+
+    renderer, site, out = site_renderer
+    seq = open_sequence(out / "seq_00")
+    cam = Camera.from_fov(160, 120, 70)  # the scan's points ~1 px apart
+    plain, fine = [], []
+    for i in (0, 4, 8, 11):
+        T_wc = seq.groundtruth.poses[i]
+        truth, truth_depth = site.render(T_wc, cam)
+        r1 = renderer.render(T_wc, cam)
+        r2 = renderer.render(T_wc, cam, supersample=2)
+        assert (r1.measured == r2.measured).mean() > 0.999
+        both = r1.measured & r2.measured
+        assert np.abs(r1.depth[both] - r2.depth[both]).max() < 1e-4
+        plain.append(_edge_shift_rms(r1.rgb, truth, truth_depth))
+        fine.append(_edge_shift_rms(r2.rgb, truth, truth_depth))
+    assert np.mean(fine) < 0.7 * np.mean(plain), (fine, plain)  # 0.09 against 0.18 px when written
+    with pytest.raises(ValueError, match="whole number"):
+        renderer.render(seq.groundtruth.poses[0], cam, supersample=1.5)
+
+
+def test_supersampled_pooling_is_the_same_on_both_paths():
+    from services.render.supersample import _block_min_nb, _block_min_torch, _pool_numba, _pool_torch
+
+    rng = np.random.default_rng(0)
+    H, W, k = 30, 40, 2
+    fine_depth = np.where(rng.random((H * k, W * k)) < 0.3, rng.uniform(1, 3, (H * k, W * k)), 0).astype(np.float32)
+    rgb = torch.from_numpy(rng.uniform(0, 255, (H * k, W * k, 3)).astype(np.float32))
+    depth = torch.from_numpy(_block_min_nb(fine_depth, k))  # the CPU path's kernels against the CUDA path's steps
+    assert torch.equal(depth, _block_min_torch(torch.from_numpy(fine_depth), k))
+    blocks = fine_depth.reshape(H, k, W, k).transpose(0, 2, 1, 3).reshape(H, W, k * k)
+    nearest = np.where(blocks > 0, blocks, np.inf).min(-1)
+    np.testing.assert_array_equal(depth.numpy(), np.where(np.isfinite(nearest), nearest, 0))
+    depth[:5] = 0  # dropped by the filter: no colour from there
+    c, m = _pool_numba(rgb, torch.from_numpy(fine_depth), depth, k, 0.02, 0.0, 2)
+    c2, m2 = _pool_torch(rgb, torch.from_numpy(fine_depth), depth, k, 0.02, 0.0, 2)
+    assert torch.equal(m, m2) and torch.allclose(c, c2, atol=1e-6)
+    assert not bool(m[0, 0, :4].any()) and bool(m[0, 0, 5:].all())  # grown across gaps, not into dropped pixels
 
 def test_plane_depth_interpolates_planes_and_refuses_edges():
     from services.render.depth_sampling import plane_depth, support_fraction
@@ -291,6 +351,19 @@ def test_plane_depth_interpolates_planes_and_refuses_edges():
     assert ok.tolist() == [False, True]
     assert [len(x) for x in plane_depth(sparse, np.zeros((0, 2)), return_plane=True)] == [0, 0, 0]  # a view with no keypoints
 
+
+
+def test_invented_near_flags_made_up_colours_not_a_sparse_scan():
+    from services.render.depth_sampling import invented_near
+
+    H, W = 60, 80
+    v, u = np.mgrid[0:H, 0:W]
+    measured = (u % 2 == 0) & (v % 2 == 0)  # a scan sampled every other pixel: gaps, nothing made up
+    measured[20:40, 50:70] = False  # a part the scanner never saw: 20 px across, filled by the renderer
+    uv = np.array([[10.0, 10.0], [45.0, 30.0], [60.0, 30.0], [35.0, 30.0], [75.0, 55.0]])
+    near = invented_near(measured, uv, radius=8, gap_px=2.0)
+    assert near.tolist() == [False, True, True, False, False]  # 5 px and inside the hole; 15 px away and beyond
+    assert invented_near(measured, np.zeros((0, 2)), 8, 2.0).shape == (0,)
 
 def test_plane_depth_backprojects_sparse_renders_onto_true_surfaces(site_renderer):
     """A scan decimated to 3 % renders mostly holes; depth interpolated between its points is still the

@@ -9,7 +9,7 @@ U-Net, points' colours grow a few pixels into the holes around them (``grow_colo
 surface splatted as rows of separate points comes out solid. The scan is prepared once (Morton-sorted chunks on the CPU, a 16-byte-per-point
 tensor on CUDA); renders never copy it.
 
-CPU path: numba splat + torch filter/U-Net (colour growing in OpenCV). CUDA path: torch throughout. Both give the
+CPU path: numba splat and colour growing + torch filter/U-Net. CUDA path: torch throughout. Both give the
 same images (tests compare them).
 """
 
@@ -19,7 +19,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-import cv2
+import numba as nb
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -31,6 +31,8 @@ from services.render.cloud import prepare_cloud
 from services.render.depth_filter import FilterConfig, fill_depth, hierarchical_depth_filter
 from services.render.depth_sampling import plane_depth
 from services.render.splat import SplatConfig, splat
+from services.render.supersample import block_min_depth, pool_colours
+from services.render.threads import keeps_torch_threads
 from services.render.unet import load_holefill
 
 __all__ = ["RenderConfig", "Render", "Renderer", "STAGES", "cubemap_poses", "grow_colours"]
@@ -120,19 +122,33 @@ class Renderer:
         return torch.from_numpy(r.rgb), torch.from_numpy(r.depth)
 
     @torch.no_grad()
-    def render(self, T_wc: Pose, camera: Camera, stage: str | None = None) -> Render:
-        """Render the scan from camera-to-world ``T_wc`` with ``camera``'s intrinsics and distortion."""
+    def render(self, T_wc: Pose, camera: Camera, stage: str | None = None, supersample: int = 1) -> Render:
+        """Render the scan from camera-to-world ``T_wc`` with ``camera``'s intrinsics and distortion.
+
+        ``supersample`` k > 1: the points are splatted at k times the resolution; each pixel gets the nearest of
+        its k x k sub-pixels' depths (a plain render's depth, filtered as one) and the mean colour of its sub-pixels
+        (``services.render.supersample``); growing and the U-Net run at the camera's resolution. A point then lands
+        within a (2k)-th of a pixel instead of half a pixel, and a pixel on an edge between two surfaces or materials
+        takes each side's share: direct alignment from such a keyframe lands about as close as from a perfect
+        picture of the scan (office walk at the true pose: 0.25 -> 0.13 cm median; benchmarks/RESULTS.md).
+        """
         stage = stage or self.stage
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         if stage == "full" and self.net is None:
             raise ValueError("this renderer was built without hole filling; use stage='filter'")
+        k = int(supersample)
+        if k < 1 or k != supersample:
+            raise ValueError(f"supersample must be a whole number >= 1, got {supersample!r}")
+        fine = camera.scaled(k) if k > 1 else camera  # whole multiples: its pixels tile the camera's exactly
         tm: dict[str, float] = {}
         sync = torch.cuda.synchronize if self.device.type == "cuda" else (lambda: None)  # true per-stage times on a GPU
         t0 = time.perf_counter()
-        rgb, depth = self._splat(T_wc, camera)
+        rgb, depth = self._splat(T_wc, fine)
         sync()
         tm["splat_ms"] = 1e3 * (time.perf_counter() - t0)
+        if k > 1:  # the depth a plain render gets (the nearest point in each pixel), filtered at that resolution
+            fine_rgb, fine_depth, depth = rgb, depth, block_min_depth(depth, k)
         if stage == "splat":
             keep = depth > 0
         else:
@@ -141,13 +157,20 @@ class Renderer:
             sync()
             tm["filter_ms"] = 1e3 * (time.perf_counter() - t0)
         depth = torch.where(keep, depth, torch.zeros_like(depth))
-        rgb01 = rgb.permute(2, 0, 1)[None] / 255.0 * keep[None, None]
-        mask = keep[None, None].float()
         t0 = time.perf_counter()
+        radius = round(self.cfg.grow_px * camera.width / 640) if stage == "full" else 0
+        if k > 1:  # colours pooled from the sub-pixels, grown shut between neighbouring points first
+            steps = min(radius * k, 2 * (k - 1))
+            rgb01, mask = pool_colours(fine_rgb, fine_depth, depth, k, self.cfg.splat.delta_abs,
+                                       self.cfg.splat.delta_rel, steps)
+            radius -= steps // k
+        else:
+            rgb01 = rgb.permute(2, 0, 1)[None] / 255.0 * keep[None, None]
+            mask = keep[None, None].float()
+        if radius > 0:
+            rgb01, mask = grow_colours(rgb01, mask, radius)
         if stage == "full":
-            radius = round(self.cfg.grow_px * camera.width / 640)
-            grown, gmask = grow_colours(rgb01, mask, radius) if radius > 0 else (rgb01, mask)
-            rgb01 = self._holefill(grown, gmask, depth[None, None])
+            rgb01 = self._holefill(rgb01, mask, depth[None, None])
             sync()
             tm["holefill_ms"] = 1e3 * (time.perf_counter() - t0)
             t0 = time.perf_counter()
@@ -192,15 +215,15 @@ def grow_colours(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[
     surface is solid and the network only fills what no point is near (benchmarks/RESULTS.md: SSIM
     0.86 -> 0.89 on full scans, 0.74 -> 0.77 at 10 %).
     """
-    if rgb01.device.type == "cpu":  # the same steps with OpenCV: ~10x faster than torch on one CPU thread
-        return _grow_cv2(rgb01, mask, radius)
+    if rgb01.device.type == "cpu":  # the same steps compiled: ~10x faster than torch on one CPU thread
+        return _grow_numba(rgb01, mask, radius)
     return _grow_torch(rgb01, mask, radius)
 
 
 def _grow_torch(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
     c, m = rgb01 * mask, mask
     for _ in range(radius):  # a pixel a step (5x5 steps: half the passes, but ~0.01 SSIM lost on the office views)
-        num = F.avg_pool2d(c, 3, 1, 1)  # zero padding, like the OpenCV path
+        num = F.avg_pool2d(c, 3, 1, 1)  # zero padding, like the CPU path
         den = F.avg_pool2d(m, 3, 1, 1)
         new = (m == 0) & (den > 0)
         c = torch.where(new, num / den.clamp_min(1e-6), c)
@@ -208,22 +231,44 @@ def _grow_torch(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[t
     return c, m
 
 
-def _grow_cv2(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
-    # colour (premultiplied) and weight in one 4-channel image: one box filter per step
-    cm = np.empty(tuple(rgb01.shape[-2:]) + (4,), np.float32)
-    cm[..., :3] = (rgb01 * mask)[0].permute(1, 2, 0).numpy()
-    cm[..., 3] = mask[0, 0].numpy()  # a copy: the caller keeps its mask
-    for _ in range(radius):  # a pixel a step, as _grow_torch
-        s = cv2.boxFilter(cm, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        den = s[..., 3]
-        new = (cm[..., 3] == 0) & (den > 0)
-        if not new.any():
+@keeps_torch_threads
+def _grow_numba(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    c = np.ascontiguousarray((rgb01 * mask)[0].numpy())  # (3, H, W), a copy: the caller keeps its tensors
+    m = np.ascontiguousarray(mask[0, 0].numpy(), dtype=np.float32).copy()
+    _grow_kernel(c, m, int(radius))
+    return torch.from_numpy(c)[None], torch.from_numpy(m)[None, None]
+
+
+@nb.njit(cache=True, parallel=True)
+def _grow_kernel(c, m, radius):  # in place; the steps of _grow_torch (a 3x3 ring a step, zero padding)
+    H, W = m.shape
+    c2 = c.copy()
+    m2 = m.copy()
+    for _ in range(radius):
+        grew = 0
+        for y in nb.prange(H):
+            for x in range(W):
+                if m[y, x] > 0:
+                    continue
+                n = 0.0
+                r = g = b = 0.0
+                for yy in range(max(y - 1, 0), min(y + 2, H)):
+                    for xx in range(max(x - 1, 0), min(x + 2, W)):
+                        if m[yy, xx] > 0:
+                            n += 1.0
+                            r += c[0, yy, xx]
+                            g += c[1, yy, xx]
+                            b += c[2, yy, xx]
+                if n > 0:
+                    c2[0, y, x] = r / n
+                    c2[1, y, x] = g / n
+                    c2[2, y, x] = b / n
+                    m2[y, x] = 1.0
+                    grew += 1
+        if grew == 0:
             break
-        scale = np.zeros(den.shape, np.float32)
-        np.divide(1.0, den, out=scale, where=new)
-        cm += s * scale[..., None]  # new pixels get the mean colour and weight 1; the rest + 0
-    cm = cm.transpose(2, 0, 1)
-    return torch.from_numpy(np.ascontiguousarray(cm[:3]))[None], torch.from_numpy(np.ascontiguousarray(cm[3]))[None, None]
+        c[:] = c2
+        m[:] = m2
 
 
 def cubemap_poses(position) -> list[Pose]:
