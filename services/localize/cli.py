@@ -83,6 +83,10 @@ def register(sub) -> None:
                         "aligning the frame to patches straight from the prediction first: slower; for comparisons")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="(--method rm) the same for the camera centre, in centimetres (default 1)")
+    p.add_argument("--supersample", type=int, metavar="K",
+                   help="(--method rm) render keyframes at K times their resolution and pool them (default 2): the "
+                        "scan's points land within 1/(2K) of a pixel, edges between them, and the frame aligns closer "
+                        "to the truth; 1 renders ~1.7x faster on the CPU, less accurately")
     add_odometry_args(p, "each frame's motion since the previous one predicts it, and carries the pose through LOST "
                          "frames (up to 5 s) so tracking resumes without relocalizing")
     p.add_argument("--backfill", action="store_true",
@@ -270,7 +274,8 @@ def run_localize(args) -> int:
     renderer = Renderer(scan, device=args.device)
     cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
                    direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points,
-                   readout_s=getattr(args, "rolling_shutter", 0.0) / 1000.0)
+                   readout_s=getattr(args, "rolling_shutter", 0.0) / 1000.0,
+                   keyframe_supersample=getattr(args, "supersample", None) or RMConfig().keyframe_supersample)
     tracker = RenderMatchTracker(renderer, _tracking_extractor(renderer, args.max_side), db, cfg)
     return localize_and_report(tracker, seq, args, args.method, stamped=True, odometry=odometry,
                                after=None if getattr(args, "no_camera_check", False) else lambda traj: _camera_check(tracker, seq, traj))
