@@ -50,6 +50,10 @@ class BuildConfig:
     yaw_overlap: float = 0.7  # yaw step = this fraction of the horizontal field of view
     pitch_deg: float | None = None  # +- pitch of the two views per direction; None: a third of the vertical FOV
     stage: str = "full"  # renderer stage: "full" (neural) or "splat" (ablation) or "filter"
+    supersample: int = 1  # keyframes rendered at this many times their resolution and pooled (Renderer.render), so
+    #                       keypoints on edges sit where the scan's samples put them. 2: office walk 0.41 -> 0.33 cm,
+    #                       960x540 81 -> 96 frames, but on the tests' 0.6-degree scan five P&L tests failed (a cold
+    #                       frame 7 inliers, not 15; benchmarks/RESULTS.md, stop 38): not the default yet
     orb: OrbSettings = field(default_factory=lambda: OrbSettings(max_keypoints=2000))
     distribution_cell: int | None = None  # px; None: 10 at 640 px width, scaled with the width
     depth_radius: int = 4  # px: a keypoint's depth and normal come from a plane fitted to the scan points this close ...
@@ -137,7 +141,7 @@ def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera
     tm = {"render_s": 0.0, "orb_s": 0.0}
     for T, pi in progress(list(zip(poses, pos_index)), desc="rendering keyframes", unit="view"):
         t0 = time.perf_counter()
-        r = renderer.render(T, cam, stage=cfg.stage)
+        r = renderer.render(T, cam, stage=cfg.stage, supersample=cfg.supersample)
         t1 = time.perf_counter()
         gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
         f = ext.extract_stella(gray)  # descriptors exactly as stella_vslam computes them

@@ -44,6 +44,10 @@ def register(sub) -> None:
     p.add_argument("--roi", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"), help="box in world coordinates")
     p.add_argument("--stage", choices=["full", "filter", "splat"], default="full",
                    help="renderer stage: full = neural (default), splat = plain point splats (ablation)")
+    p.add_argument("--supersample", type=int, metavar="K",
+                   help="render keyframes at K times their resolution and pool them (default 1): keypoints on edges "
+                        "sit where the scan's samples put them. 2 on the simulated office: 0.41 -> 0.33 cm, a 30 %% "
+                        "longer build; worse on a very sparse scan")
     p.add_argument("--decimate", type=float, metavar="FRACTION", help="use a random fraction of the scan's points")
     p.add_argument("--max-keypoints", type=int, default=2000, help="ORB keypoints per rendered view (default 2000)")
     p.add_argument("--legacy-keys", action="store_true", help="also write the keys OpenVSLAM <= 0.2.x reads")
@@ -96,7 +100,8 @@ def run_prebuild(args) -> int:
     base = BuildConfig()
     from dataclasses import replace
 
-    cfg = replace(base, stage=args.stage, orb=replace(base.orb, max_keypoints=args.max_keypoints))
+    cfg = replace(base, stage=args.stage, orb=replace(base.orb, max_keypoints=args.max_keypoints),
+                  supersample=getattr(args, "supersample", None) or base.supersample)
     m, stats, patches = build_map(renderer, pos, cam, cfg, spacing=args.spacing)
     if m.n_landmarks == 0:
         raise CliError("the map has no landmark (no keypoint was seen by two keyframes): try a smaller --spacing")
