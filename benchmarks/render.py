@@ -3,13 +3,15 @@
     python benchmarks/render.py [--site runs/bench/office-1] [--threads 2] [--repeats 10] [--device cpu|cuda] [--lod 8]
     cristal sim --preset office --lidar-step 0.05 --out runs/bench-sim/office-dense   # a 64 M-point scan
     python benchmarks/render.py --site runs/bench-sim/office-dense --lod 0 8           # level of detail off / on
+    python benchmarks/render.py --site runs/bench-sim/office --widths 480 --supersample 1 2   # Render & Match's keyframes
 
 Renders the site's ground-truth poses at 640 and 960 px wide (--widths) with the neural point renderer
 and prints a table: splat, depth filter, U-Net (full and half resolution), depth fill, total,
 and splat throughput in points per second. On CUDA it also times 8 single renders against one
 batch of 8. The site is simulated on first use (office preset, seed 1, ~4 M points). ``--lod``: the
 level of detail (at most about this many of a chunk's points per pixel; 0 = every point), one table row
-set per value, plus a cubemap (six 256 px faces, as the relocalization database renders them).
+set per value, plus a cubemap (six 256 px faces, as the relocalization database renders them). ``--supersample``:
+renders splatted at K x the resolution and pooled (Render & Match's keyframes use 2), a row per value.
 Thread counts are set on purpose: numba and torch get --threads each.
 """
 
@@ -40,6 +42,7 @@ def main() -> None:
     ap.add_argument("--lod", type=float, nargs="+", default=[SplatConfig.lod_points_per_px])
     ap.add_argument("--widths", type=int, nargs="+", default=[640, 960],
                     help="image widths to time (the sequence camera scaled; default 640 960)")
+    ap.add_argument("--supersample", type=int, nargs="+", default=[1], help="supersampling factors to time (default 1)")
     args = ap.parse_args()
     numba.set_num_threads(args.threads)
     torch.set_num_threads(args.threads)
@@ -49,25 +52,26 @@ def main() -> None:
     poses = [seq.groundtruth.poses[i] for i in np.linspace(0, len(seq) - 1, args.repeats).round().astype(int)]
     print(f"{platform.processor() or platform.machine()}, {args.threads} threads, device {args.device}, "
           f"torch {torch.__version__}, numba {numba.__version__}; scan {len(scan):,} points\n")
-    print("| level of detail | resolution | U-Net scale | splat ms | filter ms | U-Net ms | depth fill ms | total ms | splat Mpts/s |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("| level of detail | resolution | supersample | U-Net scale | splat ms | filter ms | growing + U-Net ms | "
+          "depth fill ms | total ms | splat Mpts/s |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     cubes = []
     for lod in args.lod:
         r = Renderer(scan, RenderConfig(SplatConfig(lod_points_per_px=lod)), device=args.device)  # prepared once
         default_scale = r.holefill_scale
-        for w, scale in ((w, s) for w in args.widths for s in (1.0, 0.5)):
+        for w, k, scale in ((w, k, s) for w in args.widths for k in args.supersample for s in (1.0, 0.5)):
             cam = seq.camera.scaled(w / seq.camera.width)
             r.holefill_scale = scale
-            r.render(poses[0], cam)  # warm-up (compilation, allocations)
+            r.render(poses[0], cam, supersample=k)  # warm-up (compilation, allocations)
             rows = []
             for T in poses:
                 t0 = time.perf_counter()
-                x = r.render(T, cam)
+                x = r.render(T, cam, supersample=k)
                 tot = 1e3 * (time.perf_counter() - t0)
                 rows.append([x.timings["splat_ms"], x.timings["filter_ms"], x.timings["holefill_ms"],
                              x.timings["depthfill_ms"], tot])
             m = np.median(np.array(rows), axis=0)
-            print(f"| {lod:g} | {cam.width}x{cam.height} | {scale} | {m[0]:.1f} | {m[1]:.1f} | {m[2]:.1f} | {m[3]:.1f} | {m[4]:.1f} | "
+            print(f"| {lod:g} | {cam.width}x{cam.height} | {k} | {scale} | {m[0]:.1f} | {m[1]:.1f} | {m[2]:.1f} | {m[3]:.1f} | {m[4]:.1f} | "
                   f"{len(scan) / m[0] / 1e3:.0f} |", flush=True)
         r.holefill_scale = default_scale
         t0 = time.perf_counter()
