@@ -86,7 +86,7 @@ def register(sub) -> None:
     p.add_argument("--supersample", type=int, metavar="K",
                    help="(--method rm) render keyframes at K times their resolution and pool them (default 2): the "
                         "scan's points land within 1/(2K) of a pixel, edges between them, and the frame aligns closer "
-                        "to the truth; 1 renders ~1.7x faster on the CPU, less accurately")
+                        "to the truth; 1 renders ~1.5x faster on the CPU, less accurately")
     add_odometry_args(p, "each frame's motion since the previous one predicts it, and carries the pose through LOST "
                          "frames (up to 5 s) so tracking resumes without relocalizing")
     p.add_argument("--backfill", action="store_true",

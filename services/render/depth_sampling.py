@@ -79,7 +79,6 @@ def support_fraction(measured: np.ndarray, radius: int) -> float:
     return float(cv2.dilate(measured.astype(np.uint8), k).mean())
 
 
-
 def invented_near(measured: np.ndarray, uv: np.ndarray, radius: int, gap_px: float) -> np.ndarray:
     """Whether a hole wider than 2 x ``gap_px`` lies within ``radius`` pixels of each of ``uv`` (N, 2): there the
     render's colours are not the scan's but what hole filling made up (a part of the room the scanner never saw,

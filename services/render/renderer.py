@@ -130,7 +130,7 @@ class Renderer:
         (``services.render.supersample``); growing and the U-Net run at the camera's resolution. A point then lands
         within a (2k)-th of a pixel instead of half a pixel, and a pixel on an edge between two surfaces or materials
         takes each side's share: direct alignment from such a keyframe lands about as close as from a perfect
-        picture of the scan (office walk at the true pose: 0.25 -> 0.13 cm median; benchmarks/RESULTS.md).
+        picture of the scan (office walk at the true pose: 0.25 -> 0.15 cm median; benchmarks/RESULTS.md, stop 38).
         """
         stage = stage or self.stage
         if stage not in STAGES:

@@ -8,7 +8,7 @@ The points are splatted at k times the camera's resolution. Each pixel then gets
   the covered sub-pixels (``pool_colours``). A pixel on an edge between two surfaces or materials so takes the share
   of each side that lies nearer its points, instead of the colour of whichever point was rounded into it.
 
-Two paths, the same steps: torch (any device; the CUDA path) and numba (the CPU path, ~5x faster than torch on one
+Two paths, the same steps: torch (any device; the CUDA path) and numba (the CPU path, ~3x faster than torch on one
 thread there). ``tests/test_render.py`` checks they agree.
 """
 
