@@ -250,7 +250,7 @@ def test_measured_depth_backprojects_onto_true_surfaces(site_renderer):
 
 
 def test_grow_colours_closes_gaps_between_points_only():
-    from services.render.renderer import _grow_numba, _grow_torch, grow_colours
+    from services.render.grow import _grow_numba, _grow_torch, grow_colours
 
     H, W = 48, 64
     v, u = np.mgrid[0:H, 0:W]

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from services.render.grow import _grow_torch, grow_kernel
 from services.render.threads import keeps_torch_threads
 
 __all__ = ["block_min_depth", "pool_colours"]
@@ -52,8 +53,6 @@ def pool_colours(rgb: torch.Tensor, fine_depth: torch.Tensor, depth: torch.Tenso
 
 
 def _pool_torch(rgb, fine_depth, depth, k, delta_abs, delta_rel, steps):
-    from services.render.renderer import _grow_torch
-
     up = depth.repeat_interleave(k, 0).repeat_interleave(k, 1)
     sub = (fine_depth > 0) & (up > 0) & (fine_depth <= up * (1 + delta_rel) + delta_abs)
     rgb01 = rgb.permute(2, 0, 1)[None] / 255.0 * sub[None, None]
@@ -95,7 +94,7 @@ def _block_min_nb(depth, k):
 def _pool_nb(rgb, fine_depth, depth, k, delta_abs, delta_rel, steps):
     Hf, Wf = fine_depth.shape
     H, W = depth.shape
-    c = np.zeros((Hf, Wf, 3), np.float32)
+    c = np.zeros((3, Hf, Wf), np.float32)
     m = np.zeros((Hf, Wf), np.float32)
     for y in nb.prange(Hf):
         for x in range(Wf):
@@ -104,34 +103,8 @@ def _pool_nb(rgb, fine_depth, depth, k, delta_abs, delta_rel, steps):
             if d > 0 and z > 0 and d <= z * (1 + delta_rel) + delta_abs:
                 m[y, x] = 1.0
                 for ch in range(3):
-                    c[y, x, ch] = rgb[y, x, ch] / 255.0
-    c2 = c.copy()
-    m2 = m.copy()
-    for _ in range(steps):  # grow_colours' steps: each empty sub-pixel takes the mean of the covered ones around it
-        grew = 0
-        for y in nb.prange(Hf):
-            for x in range(Wf):
-                if m[y, x] > 0:
-                    continue
-                n = 0.0
-                r = g = b = 0.0
-                for yy in range(max(y - 1, 0), min(y + 2, Hf)):
-                    for xx in range(max(x - 1, 0), min(x + 2, Wf)):
-                        if m[yy, xx] > 0:
-                            n += 1.0
-                            r += c[yy, xx, 0]
-                            g += c[yy, xx, 1]
-                            b += c[yy, xx, 2]
-                if n > 0:
-                    c2[y, x, 0] = r / n
-                    c2[y, x, 1] = g / n
-                    c2[y, x, 2] = b / n
-                    m2[y, x] = 1.0
-                    grew += 1
-        if grew == 0:
-            break
-        c[:] = c2
-        m[:] = m2
+                    c[ch, y, x] = rgb[y, x, ch] / 255.0
+    grow_kernel(c, m, steps)
     out = np.zeros((3, H, W), np.float32)
     mask = np.zeros((H, W), np.float32)
     for y in nb.prange(H):
@@ -142,9 +115,9 @@ def _pool_nb(rgb, fine_depth, depth, k, delta_abs, delta_rel, steps):
                 for xx in range(x * k, x * k + k):
                     if m[yy, xx] > 0:
                         n += 1.0
-                        r += c[yy, xx, 0]
-                        g += c[yy, xx, 1]
-                        b += c[yy, xx, 2]
+                        r += c[0, yy, xx]
+                        g += c[1, yy, xx]
+                        b += c[2, yy, xx]
             if n > 0:
                 out[0, y, x] = r / n
                 out[1, y, x] = g / n
