@@ -329,6 +329,7 @@ def test_supersampled_pooling_is_the_same_on_both_paths():
     assert torch.equal(m, m2) and torch.allclose(c, c2, atol=1e-6)
     assert not bool(m[0, 0, :4].any()) and bool(m[0, 0, 5:].all())  # grown across gaps, not into dropped pixels
 
+
 def test_plane_depth_interpolates_planes_and_refuses_edges():
     from services.render.depth_sampling import plane_depth, support_fraction
 
@@ -352,7 +353,6 @@ def test_plane_depth_interpolates_planes_and_refuses_edges():
     assert [len(x) for x in plane_depth(sparse, np.zeros((0, 2)), return_plane=True)] == [0, 0, 0]  # a view with no keypoints
 
 
-
 def test_invented_near_flags_made_up_colours_not_a_sparse_scan():
     from services.render.depth_sampling import invented_near
 
@@ -364,6 +364,7 @@ def test_invented_near_flags_made_up_colours_not_a_sparse_scan():
     near = invented_near(measured, uv, radius=8, gap_px=2.0)
     assert near.tolist() == [False, True, True, False, False]  # 5 px and inside the hole; 15 px away and beyond
     assert invented_near(measured, np.zeros((0, 2)), 8, 2.0).shape == (0,)
+
 
 def test_plane_depth_backprojects_sparse_renders_onto_true_surfaces(site_renderer):
     """A scan decimated to 3 % renders mostly holes; depth interpolated between its points is still the
