@@ -37,6 +37,15 @@ def pnl_map(pnl_site):
     return mapdir, json.loads(r.stdout.strip().splitlines()[-1])
 
 
+
+def test_prebuild_refuses_a_bad_supersampling_factor(pnl_site, tmp_path):
+    from services.cli import main
+
+    root, out, _, _ = pnl_site
+    assert main(["prebuild", str(root / "scan.ply"), "--camera", str(out / "seq" / "camera.json"), "--out",
+                 str(tmp_path / "m"), "--supersample", "0"]) == 2
+    assert not (tmp_path / "m").exists()
+
 def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
     import json
 

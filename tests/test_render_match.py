@@ -104,6 +104,8 @@ def test_localize_cli_writes_tum_and_reports_ape(rm_setup, small_site, tmp_path,
     assert all(0 < log[k].sigma_m < 0.05 and log[k].inliers > 0 for k in traj.stamps), log
     assert main(["localize", str(out / "scan.ply"), str(out / "seq_00"), "--db", str(tmp_path / "missing.npz"),
                  "--out", str(tmp_path / "x.txt")]) == 2
+    assert main(["localize", str(out / "scan.ply"), str(out / "seq_00"), "--db", str(db_path), "--out",
+                 str(tmp_path / "x.txt"), "--supersample", "0"]) == 2  # a clear error, not the default in silence
 
 
 def test_reacquires_at_the_last_good_pose_after_lost_without_a_database(rm_setup):

@@ -252,6 +252,8 @@ def run_localize(args) -> int:
     if not 0 <= args.rolling_shutter <= 200:
         raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
     near_arg(args.near)  # (a bad hint fails before anything loads; the runner takes it from args)
+    if getattr(args, "supersample", None) is not None and not 1 <= args.supersample <= 4:
+        raise CliError(f"--supersample is a whole factor from 1 (off) to 4, got {args.supersample}")
     if args.method == "pnl":
         from services.localize.pnl_cli import run_localize_pnl
 

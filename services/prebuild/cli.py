@@ -81,6 +81,8 @@ def run_prebuild(args) -> int:
     cam = Camera.load(args.camera)
     if args.decimate is not None and not 0 < args.decimate <= 1:
         raise CliError(f"--decimate must be in (0, 1], got {args.decimate}")
+    if getattr(args, "supersample", None) is not None and not 1 <= args.supersample <= 4:
+        raise CliError(f"--supersample is a whole factor from 1 (off) to 4, got {args.supersample}")
     try:
         import torch
 
