@@ -52,8 +52,8 @@ class BuildConfig:
     stage: str = "full"  # renderer stage: "full" (neural) or "splat" (ablation) or "filter"
     supersample: int = 1  # keyframes rendered at this many times their resolution and pooled (Renderer.render), so
     #                       keypoints on edges sit where the scan's samples put them. 2: office walk 0.41 -> 0.33 cm,
-    #                       960x540 81 -> 96 frames, but on the tests' 0.6-degree scan five P&L tests failed (a cold
-    #                       frame 7 inliers, not 15; benchmarks/RESULTS.md, stop 38): not the default yet
+    #                       960x540 81 -> 96 frames, but on the tests' 0.6-degree scan five P&L tests failed (its
+    #                       walk 0.25 -> 0.78 cm; benchmarks/RESULTS.md, stop 38): not the default yet
     orb: OrbSettings = field(default_factory=lambda: OrbSettings(max_keypoints=2000))
     distribution_cell: int | None = None  # px; None: 10 at 640 px width, scaled with the width
     depth_radius: int = 4  # px: a keypoint's depth and normal come from a plane fitted to the scan points this close ...
