@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from services.render.threads import keeps_torch_threads
 
-__all__ = ["grow_colours", "grow_kernel"]
+__all__ = ["covered_sum", "grow_colours", "grow_kernel"]
 
 
 def grow_colours(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -50,6 +50,22 @@ def _grow_numba(rgb01: torch.Tensor, mask: torch.Tensor, radius: int) -> tuple[t
     return torch.from_numpy(c)[None], torch.from_numpy(m)[None, None]
 
 
+@nb.njit(cache=True, inline="always")
+def covered_sum(c, m, y0, y1, x0, x1):
+    """How many pixels of rows y0..y1-1, columns x0..x1-1 are covered (``m`` > 0), and the sums of their colours
+    (``c``: (3, H, W))."""
+    n = 0.0
+    r = g = b = 0.0
+    for yy in range(y0, y1):
+        for xx in range(x0, x1):
+            if m[yy, xx] > 0:
+                n += 1.0
+                r += c[0, yy, xx]
+                g += c[1, yy, xx]
+                b += c[2, yy, xx]
+    return n, r, g, b
+
+
 @nb.njit(cache=True, parallel=True)
 def grow_kernel(c, m, radius):  # in place; the steps of _grow_torch (a 3x3 ring a step, zero padding)
     H, W = m.shape
@@ -61,15 +77,7 @@ def grow_kernel(c, m, radius):  # in place; the steps of _grow_torch (a 3x3 ring
             for x in range(W):
                 if m[y, x] > 0:
                     continue
-                n = 0.0
-                r = g = b = 0.0
-                for yy in range(max(y - 1, 0), min(y + 2, H)):
-                    for xx in range(max(x - 1, 0), min(x + 2, W)):
-                        if m[yy, xx] > 0:
-                            n += 1.0
-                            r += c[0, yy, xx]
-                            g += c[1, yy, xx]
-                            b += c[2, yy, xx]
+                n, r, g, b = covered_sum(c, m, max(y - 1, 0), min(y + 2, H), max(x - 1, 0), min(x + 2, W))
                 if n > 0:
                     c2[0, y, x] = r / n
                     c2[1, y, x] = g / n

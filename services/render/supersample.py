@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from services.render.grow import _grow_torch, grow_kernel
+from services.render.grow import _grow_torch, covered_sum, grow_kernel
 from services.render.threads import keeps_torch_threads
 
 __all__ = ["block_min_depth", "pool_colours"]
@@ -109,15 +109,7 @@ def _pool_nb(rgb, fine_depth, depth, k, delta_abs, delta_rel, steps):
     mask = np.zeros((H, W), np.float32)
     for y in nb.prange(H):
         for x in range(W):
-            n = 0.0
-            r = g = b = 0.0
-            for yy in range(y * k, y * k + k):
-                for xx in range(x * k, x * k + k):
-                    if m[yy, xx] > 0:
-                        n += 1.0
-                        r += c[0, yy, xx]
-                        g += c[1, yy, xx]
-                        b += c[2, yy, xx]
+            n, r, g, b = covered_sum(c, m, y * k, y * k + k, x * k, x * k + k)
             if n > 0:
                 out[0, y, x] = r / n
                 out[1, y, x] = g / n
