@@ -295,3 +295,40 @@ def test_a_degenerate_landmark_is_refused_not_a_crash(backend):
     img = _texture(7)[:64, :64].copy()
     _, ok, _ = align_to_patches(lp, np.arange(3), P, np.eye(3), np.zeros(3), K, img)
     assert not ok[1:].any()
+
+
+def test_a_patch_cut_near_a_hole_in_the_scan_weighs_less(tmp_path):
+    """hole_noise: 1 where every pixel within 8 px (at 480 wide) of the keypoint is at most 1.4 px from a measured
+    one, growing as the largest such distance / 1.4 past that, the same at any render width; the file keeps it and
+    alignment's information shrinks by its square."""
+    from services.prebuild.patches import hole_noise
+
+    for width, s in ((480, 1), (960, 2)):
+        measured = np.ones((360 * s, width), bool)
+        measured[100 * s:100 * s + 2 * s, :] = False  # a thin seam: 1 px from a measured pixel at 480 wide
+        measured[200 * s:220 * s, 200 * s:220 * s] = False  # a 20 px hole: 10 px to its nearest measured pixel
+        uv = np.array([[50.0, 50.0], [50.0, 100.5], [210.0, 210.0], [210.0, 195.0], [210.0, 240.0]]) * s
+        f = hole_noise(measured, uv, width)
+        assert f.dtype == np.float32 and f.shape == (5,)
+        assert f[0] == 1.0 and f[1] == 1.0  # no hole near / a seam the growing closes
+        assert f[2] == pytest.approx(10 / 1.4, rel=0.1)  # in the hole's middle
+        assert 2 < f[3] < f[2] / 1.7  # 5 px above it: reaches 3 px into it, 3-4 px from a measured pixel
+        assert f[4] == 1.0  # 20 px below it: out of reach
+    assert hole_noise(np.ones((10, 10), bool), np.zeros((0, 2)), 10).shape == (0,)
+
+    img = _texture(5)[:CAM.height, :CAM.width]
+    uv = np.array([[100.0, 80.0], [200.0, 150.0]])
+    P = np.column_stack([(uv[:, 0] - CAM.cx) / CAM.fx, (uv[:, 1] - CAM.cy) / CAM.fy, np.ones(2)]) * 3.0
+    lp = LandmarkPatches(np.arange(2), np.clip(sample_patches(img, uv, 23) + 0.5, 0, 255).astype(np.uint8),
+                         np.tile([0.0, 0.0, -1.0], (2, 1)), np.zeros(2, np.int64),
+                         np.array([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]]), CAM.K)
+    _, _, info = align_to_patches(lp, np.arange(2), P, np.eye(3), np.zeros(3), CAM.K, img)
+    lp.noise = np.array([1.0, 4.0], np.float32)
+    _, _, info_n = align_to_patches(lp, np.arange(2), P, np.eye(3), np.zeros(3), CAM.K, img)
+    np.testing.assert_allclose(info_n, info / np.array([1.0, 16.0])[:, None, None], rtol=1e-5)
+    lp.save(tmp_path / "patches.npz")
+    np.testing.assert_array_equal(LandmarkPatches.load(tmp_path / "patches.npz").noise, lp.noise)
+    lp.noise = np.array([1.0, 0.5], np.float32)  # below 1: not a noise factor
+    lp.save(tmp_path / "bad.npz")
+    with pytest.raises(ValueError, match="inconsistent"):
+        LandmarkPatches.load(tmp_path / "bad.npz")

@@ -36,7 +36,7 @@ from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hammin
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose, look_at
 from services.log import progress
-from services.prebuild.patches import LandmarkPatches, align_to_patches, map_fingerprint, sample_patches
+from services.prebuild.patches import LandmarkPatches, align_to_patches, hole_noise, map_fingerprint, sample_patches
 from services.prebuild.stella_map import DEFAULT_ORB_NAME, MapCamera, MapKeyframe, OrbParams, StellaMap
 from services.render.depth_sampling import plane_normals
 
@@ -51,9 +51,11 @@ class BuildConfig:
     pitch_deg: float | None = None  # +- pitch of the two views per direction; None: a third of the vertical FOV
     stage: str = "full"  # renderer stage: "full" (neural) or "splat" (ablation) or "filter"
     supersample: int = 1  # keyframes rendered at this many times their resolution and pooled (Renderer.render), so
-    #                       keypoints on edges sit where the scan's samples put them. 2: office walk 0.41 -> 0.33 cm,
-    #                       960x540 81 -> 96 frames, but on the tests' 0.6-degree scan five P&L tests failed (its
-    #                       walk 0.25 -> 0.78 cm; benchmarks/RESULTS.md, stop 38): not the default yet
+    #                       keypoints on edges sit where the scan's samples put them. 2: office walk 0.41 -> 0.33 cm
+    #                       (stop 38), and with patches weighed by (d / 1.4)^2 from hole_noise 0.35 -> 0.31 cm, > 3
+    #                       sigma 21 -> 13 frames; but on the tests' 0.6-degree scan four P&L tests fail by a hair
+    #                       (rolling shutter, dim frames, a turn's hand-over; benchmarks/RESULTS.md, stop 40): not the
+    #                       default yet
     orb: OrbSettings = field(default_factory=lambda: OrbSettings(max_keypoints=2000))
     distribution_cell: int | None = None  # px; None: 10 at 640 px width, scaled with the width
     depth_radius: int = 4  # px: a keypoint's depth and normal come from a plane fitted to the scan points this close ...
@@ -101,6 +103,7 @@ class _View:
     uvc: np.ndarray  # (N, 2) level-0 pixel centres of the keypoints
     gray: np.ndarray | None = None  # the render in grey (landmark patches)
     normals: np.ndarray | None = None  # (N, 3) world surface normals at the keypoints, towards the camera
+    noise: np.ndarray | None = None  # (N,) a patch here aligns this much noisier (holes nearby: patches.hole_noise)
 
 
 class _UnionFind:
@@ -151,11 +154,12 @@ def _render_views(renderer, poses: list[Pose], pos_index: list[int], cam: Camera
         sel = np.flatnonzero(ok)
         f, uvc, X = f.subset(sel), uvc[sel], X[sel]
         z = T.inverse().transform(X)[:, 2]
-        normals = None
+        normals = noise = None
         if cfg.patch_size:
             c = r.camera
             normals = plane_normals(uvc, planes[sel], c.fx, c.fy, c.cx, c.cy) @ T.R.T  # world axes
-        views.append(_View(T, f, X, z, pi, uvc, gray if cfg.patch_size else None, normals))
+            noise = hole_noise(r.measured, uvc, cam.width)
+        views.append(_View(T, f, X, z, pi, uvc, gray if cfg.patch_size else None, normals, noise))
         tm["render_s"] += t1 - t0
         tm["orb_s"] += time.perf_counter() - t1
     return views, tm
@@ -290,6 +294,8 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
     all_X = np.concatenate([v.X for v in views]) if len(obs_view) else np.zeros((0, 3))
     all_z = np.concatenate([v.z for v in views]) if len(obs_view) else np.zeros(0)
     all_oct = np.concatenate([v.feats.octaves for v in views]) if len(obs_view) else np.zeros(0, np.int32)
+    all_noise = np.concatenate([v.noise if v.noise is not None else np.ones(len(v.feats), np.float32) for v in views]) \
+        if len(obs_view) else np.zeros(0, np.float32)
     # clusters: median point, drop far observations, one observation per keyframe, >= min_observations keyframes
     order = np.lexsort((obs_view, labels))
     lab_s = labels[order]
@@ -316,7 +322,8 @@ def build_map(renderer, positions: np.ndarray, camera: Camera, cfg: BuildConfig 
         keep_obs.append(o)
         oc = all_oct[o]
         lm_pos.append(all_X[o[oc == oc.min()]].mean(axis=0))  # the finest pyramid level locates the corner best
-        lm_src.append(int(o[oc == oc.min()][0]))
+        fine = o[oc == oc.min()]
+        lm_src.append(int(fine[np.argmin(all_noise[fine])]))  # of those, the one with the scan's own colours around it
     # keyframes that observe at least one landmark; ids in view order
     obs_lm = np.concatenate([np.full(len(o), i) for i, o in enumerate(keep_obs)]) if keep_obs else np.zeros(0, int)
     obs_all = np.concatenate(keep_obs) if keep_obs else np.zeros(0, int)
@@ -441,6 +448,7 @@ def _landmark_patches(views: list[_View], obs_view: np.ndarray, src_obs: np.ndar
     n = len(src_obs)
     patches = np.zeros((n, cfg.patch_size, cfg.patch_size), np.uint8)
     normals = np.zeros((n, 3), np.float32)
+    noise = np.ones(n, np.float32)
     src_view = obs_view[src_obs] if n else np.zeros(0, np.int64)
     starts = np.cumsum([0] + [len(v.feats) for v in views])
     used, src = np.unique(src_view, return_inverse=True)
@@ -453,4 +461,7 @@ def _landmark_patches(views: list[_View], obs_view: np.ndarray, src_obs: np.ndar
         uv, _ = cam.project(T_cw.transform(lm_pos[sel]))
         patches[sel] = np.clip(sample_patches(v.gray, uv, cfg.patch_size) + 0.5, 0, 255).astype(np.uint8)
         normals[sel] = v.normals[src_obs[sel] - starts[vi]]
-    return LandmarkPatches(np.arange(n, dtype=np.int64), patches, normals, src.astype(np.int64), src_T_cw, cam.K.copy())
+        if v.noise is not None:
+            noise[sel] = v.noise[src_obs[sel] - starts[vi]]
+    return LandmarkPatches(np.arange(n, dtype=np.int64), patches, normals, src.astype(np.int64), src_T_cw, cam.K.copy(),
+                           noise=noise)
