@@ -26,6 +26,7 @@ import numpy as np
 
 from services.io.atomic import atomic_write
 from services.kernels import optional_kernels
+from services.render.depth_sampling import hole_depth
 
 __all__ = ["PATCH_FILE", "PATCH_FORMAT_VERSION", "LandmarkPatches", "map_fingerprint", "sample_patches", "align_to_patches", "hole_noise",
            "alignment_backend", "corner_scores", "search_patches"]
@@ -99,16 +100,8 @@ def hole_noise(measured: np.ndarray, uv: np.ndarray, width: int) -> np.ndarray:
     at 480 wide). Weighing alignments by that in full held back 19 more poses as too uncertain on the office seed 8
     walk (189 vs 208 of 300, at the same 0.25 cm); by its square root, d / 1.4 (this), 212, while the office walk's
     error still fell 0.41 -> 0.35 cm and its poses beyond 3 sigma 30 -> 22 (benchmarks/RESULTS.md, stop 40)."""
-    uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    if not len(uv):
-        return np.ones(0, np.float32)
-    s = 480.0 / width
-    dt = cv2.distanceTransform((~measured.astype(bool)).astype(np.uint8), cv2.DIST_L2, 3)
-    r = max(4, 8 * width // 480)
-    widest = cv2.dilate(dt, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
-    h, w = measured.shape
-    px = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1])
-    return np.maximum(1.0, widest[px[:, 1], px[:, 0]] * s / 1.4).astype(np.float32)
+    d = hole_depth(measured, uv, max(4, 8 * width // 480)) * (480.0 / width)
+    return np.maximum(1.0, d / 1.4).astype(np.float32)
 
 
 def corner_scores(patches: np.ndarray, half: int = 6) -> np.ndarray:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["invented_near", "plane_depth", "plane_normals", "support_fraction"]
+__all__ = ["hole_depth", "invented_near", "plane_depth", "plane_normals", "support_fraction"]
 
 
 def plane_depth(depth: np.ndarray, uv: np.ndarray, radius: int = 4, max_residual: float = 0.01,
@@ -79,15 +79,22 @@ def support_fraction(measured: np.ndarray, radius: int) -> float:
     return float(cv2.dilate(measured.astype(np.uint8), k).mean())
 
 
+def hole_depth(measured: np.ndarray, uv: np.ndarray, radius: int) -> np.ndarray:
+    """(N,) float32: for each of ``uv`` (N, 2), how far (px) the pixel within ``radius`` of it that lies farthest
+    from the render's measured pixels (``measured``) is from one: 0 where every pixel near is measured, half a
+    hole's width for a hole within reach."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    if not len(uv):
+        return np.zeros(0, np.float32)
+    dt = cv2.distanceTransform((~measured.astype(bool)).astype(np.uint8), cv2.DIST_L2, 3)
+    deepest = cv2.dilate(dt, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
+    h, w = measured.shape
+    px = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1])
+    return deepest[px[:, 1], px[:, 0]]
+
+
 def invented_near(measured: np.ndarray, uv: np.ndarray, radius: int, gap_px: float) -> np.ndarray:
     """Whether a hole wider than 2 x ``gap_px`` lies within ``radius`` pixels of each of ``uv`` (N, 2): there the
     render's colours are not the scan's but what hole filling made up (a part of the room the scanner never saw,
     behind a rack, filled with the rack's colour: its edge there is drawn where no edge is)."""
-    uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    if not len(uv):
-        return np.zeros(0, bool)
-    far = cv2.distanceTransform((~measured.astype(bool)).astype(np.uint8), cv2.DIST_L2, 3) > gap_px
-    near = cv2.dilate(far.astype(np.uint8), np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)) > 0
-    h, w = measured.shape
-    px = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1])
-    return near[px[:, 1], px[:, 0]]
+    return hole_depth(measured, uv, radius) > gap_px
