@@ -52,10 +52,9 @@ class BuildConfig:
     stage: str = "full"  # renderer stage: "full" (neural) or "splat" (ablation) or "filter"
     supersample: int = 1  # keyframes rendered at this many times their resolution and pooled (Renderer.render), so
     #                       keypoints on edges sit where the scan's samples put them. 2: office walk 0.41 -> 0.33 cm
-    #                       (stop 38), and with patches weighed by (d / 1.4)^2 from hole_noise 0.35 -> 0.31 cm, > 3
-    #                       sigma 21 -> 13 frames; but on the tests' 0.6-degree scan four P&L tests fail by a hair
-    #                       (rolling shutter, dim frames, a turn's hand-over; benchmarks/RESULTS.md, stop 40): not the
-    #                       default yet
+    #                       (stop 38), and with patches weighed by hole_noise 0.35 -> 0.31 cm, > 3 sigma 22 -> 15
+    #                       frames; but on the tests' 0.6-degree scan three P&L tests fail by a hair (a crowded cold
+    #                       frame, dim frames, a turn's hand-over; benchmarks/RESULTS.md, stop 40): not the default yet
     orb: OrbSettings = field(default_factory=lambda: OrbSettings(max_keypoints=2000))
     distribution_cell: int | None = None  # px; None: 10 at 640 px width, scaled with the width
     depth_radius: int = 4  # px: a keypoint's depth and normal come from a plane fitted to the scan points this close ...

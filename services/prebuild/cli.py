@@ -46,8 +46,10 @@ def register(sub) -> None:
                    help="renderer stage: full = neural (default), splat = plain point splats (ablation)")
     p.add_argument("--supersample", type=int, metavar="K",
                    help="render keyframes at K times their resolution and pool them (default 1): keypoints on edges "
-                        "sit where the scan's samples put them. 2 on the simulated office: 0.41 -> 0.33 cm, a 30 %% "
-                        "longer build; but 0.25 -> 0.78 cm on the tests' small site (not understood yet)")
+                        "sit where the scan's samples put them. 2 on the simulated office: 0.35 -> 0.31 cm, a 30 %% "
+                        "longer build; but 0.24 -> 0.44 cm on the tests' small site, whose renders have more holes "
+                        "(66 %% of patches near one, the office 10 %%) and its corners land on colours the hole "
+                        "filling drew (benchmarks/RESULTS.md, stop 40)")
     p.add_argument("--decimate", type=float, metavar="FRACTION", help="use a random fraction of the scan's points")
     p.add_argument("--max-keypoints", type=int, default=2000, help="ORB keypoints per rendered view (default 2000)")
     p.add_argument("--legacy-keys", action="store_true", help="also write the keys OpenVSLAM <= 0.2.x reads")
