@@ -69,7 +69,7 @@ def test_relocalizes_a_cold_frame_and_refuses_garbage(rm_setup):
 def test_a_weak_relocalization_says_why_with_its_numbers_after_the_kind(rm_setup):
     """LOST frames are counted by the kind of their reason (lost_reasons): the inlier counts follow the kind."""
     from protocol.messages import reason_kind
-    from services.localize.render_match import RMConfig, _Frame
+    from services.localize.render_match import _Frame
 
     renderer, ext, db, seq, _ = rm_setup
     f = seq.read(7)
@@ -162,7 +162,7 @@ def test_direct_tracking_takes_weaker_corners_when_a_strong_one_outshines_the_re
     import dataclasses
 
     from services.io.sequence import open_sequence
-    from services.localize.render_match import RMConfig, _Frame
+    from services.localize.render_match import _Frame
 
     renderer, ext, _, _, _ = rm_setup
     _, out, cam, _ = site_480
@@ -683,7 +683,7 @@ def test_a_feature_pose_and_a_direct_pose_combine_by_their_covariances():
 
 def test_blurred_keyframe_features_are_reused_while_the_motion_is_alike(rm_setup):
     from services.geometry.se3 import Pose
-    from services.localize.render_match import RMConfig, _Frame
+    from services.localize.render_match import _Frame
 
     renderer, ext, _, seq, _ = rm_setup
     tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(exposure_s=0.03))
@@ -1133,3 +1133,29 @@ def test_a_coarse_pose_whose_first_render_is_only_plausible_is_rendered_at_once_
         assert tr._good(r)
         dt, dr = gt.distance_to(r.T_wc)
         assert dt < 0.01 and dr < 0.1, (i, dt, dr)
+
+
+def test_a_frame_relocalized_soon_after_a_fast_turn_lost_the_track_counts_the_turn_s_blur(rm_setup):
+    """Right after a LOST gap of at most ``gap_motion_s``, the frame that re-acquires is taken as blurred by the mean
+    motion over the gap (over the exposure): a turn of 15 deg in 0.1 s with a 12 ms exposure smears 1.8 deg of view.
+    Past the gap, or with no exposure known, nothing is assumed."""
+    from services.geometry.se3 import Pose
+    from services.localize.render_match import _Frame
+
+    renderer, ext, _, seq, _ = rm_setup
+    tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(exposure_s=0.012))
+    f0 = seq.read(0)
+    s0 = float(f0.stamp)
+    assert tr.process(f0.image, seq.camera, prior=seq.groundtruth.poses[0], stamp=s0).T_wc is not None
+    assert tr.process(np.full_like(f0.image, 128), seq.camera, stamp=s0 + 0.033).status == Status.LOST
+    T0 = tr.recent[0]
+    turned = T0 @ Pose.from_rotvec_t(np.radians([0.0, 15.0, 0.0]), np.zeros(3))
+    fx = seq.camera.fx
+
+    def blur(dt, exposure=None):
+        return tr._gap_blur_px(turned, _Frame(f0.image, seq.camera, {}, None, 0.0, exposure, stamp=s0 + dt))
+
+    assert blur(0.1) == pytest.approx(fx * np.radians(1.8), rel=0.1)
+    assert blur(0.6) == 0.0  # beyond gap_motion_s (0.5 s): the turn may have ended long ago
+    tr.cfg = RMConfig()  # no exposure configured, none calibrated yet
+    assert blur(0.1) == 0.0 and blur(0.1, exposure=0.012) == pytest.approx(fx * np.radians(1.8), rel=0.1)
