@@ -9,11 +9,12 @@ localize` over each site of ROOT that has a walk (SITE/seq_00) and the method's 
 SITE/reloc.npz (`--no-camera-check`), Prebuild & Localize with SITE/map. Images only, first frame cold. For each
 it prints frames localized, APE with no alignment, the worst reported frame's translation and rotation errors
 (not judged: a frame far beyond the 1 cm / 0.1 degree promise shows there before it counts as off), the frames
-reported beyond 5 cm or 1 degree of the truth ("off", which must stay 0), the poses whose error exceeds 3 times the 1-sigma they were reported with ("> 3σ", from the
-localizer's TRAJ.frames.csv: how honest its uncertainty is; not judged), and the change against the baseline
-file. A row is a regression when it loses more than --tolerance frames, reports a frame off that the baseline did
-not, or its translation APE grows by more than 15 % + 0.05 cm; the exit status is then 1. --update writes this
-run's numbers as the new baseline (commit it with the change that moved them).
+reported beyond 5 cm or 1 degree of the truth ("off", which must stay 0), the poses whose error exceeds 3 times
+the 1-sigma they were reported with ("> 3σ", from the localizer's TRAJ.frames.csv: how honest its uncertainty is;
+not judged), and the change against the baseline file. A row is a regression when it loses more than
+--tolerance frames, reports a frame off that the baseline did not, or its translation APE grows by more than
+15 % + 0.05 cm; the exit status is then 1. --update writes this run's numbers as the new baseline (commit it with
+the change that moved them).
 
 Sites come from `python benchmarks/sim.py` and the presets named in benchmarks/RESULTS.md; databases from `cristal
 build-db`, maps from `cristal prebuild`. A full sweep of the ten walks takes ~20 minutes on 2 cores.
@@ -68,7 +69,8 @@ def run(site: Path, method: str, out: Path, extra: tuple[str, ...] = ()) -> dict
     return {"frames": int(s["frames"]), "localized": int(s["localized"]),
             "ape_cm": round(100 * s["ape_none_trans_rmse_m"], 3), "ape_deg": round(s["ape_none_rot_rmse_deg"], 4),
             "off": int(((a.trans_err > OFF_M) | (a.rot_err_deg > OFF_DEG)).sum()),
-            "max_cm": round(100 * float(a.trans_err.max(initial=0.0)), 2), "max_deg": round(float(a.rot_err_deg.max(initial=0.0)), 3),
+            "max_cm": round(100 * float(a.trans_err.max(initial=0.0)), 2),
+            "max_deg": round(float(a.rot_err_deg.max(initial=0.0)), 3),
             "beyond_3sigma": check["beyond_3sigma"], "fps": round(s["fps"], 1), "wall_s": round(time.perf_counter() - t0, 1)}
 
 

@@ -469,10 +469,12 @@ class RenderMatchTracker:
             kf.feats, kf.xyz = self._points(kf.render, kf.render.rgb, fr.tm)
         return kf.feats, kf.xyz, kf.gray
 
-    def _blur_px(self, fr: _Frame, exposure_s: float | None) -> float:
-        if fr.motion is None or not exposure_s:
+    def _blur_px(self, fr: _Frame, exposure_s: float | None, motion: tuple[Pose, float] | None = None) -> float:
+        """The frame's blur (frame pixels) had the camera kept ``motion`` (default: the frame's own) over the exposure."""
+        motion = motion or fr.motion
+        if motion is None or not exposure_s:
             return 0.0
-        D, dt = fr.motion
+        D, dt = motion
         return blur_length_px(fr.camera, Pose.identity(), Pose.identity().interpolate(D, exposure_s / dt))
 
     def _blurred_image(self, kf: Keyframe, fr: _Frame, exposure_s: float, reuse: bool = True) -> tuple[np.ndarray, bool]:
@@ -772,13 +774,16 @@ class RenderMatchTracker:
         blur from the image against a render at a pose that is itself off can miss it: office seed 8 frames 106-107,
         relocalized 10 frames after a turn of 5 deg a frame lost the track (~15 px of blur), read 4 px from the image
         and were reported 2.5 cm / 0.97 deg off at a predicted 0.26 cm / 0.097 deg."""
-        if self.recent is None or self.recent[1] is None or fr.stamp is None:
-            return 0.0
-        gap, exposure = fr.stamp - self.recent[1], fr.exposure_s or self.exposure_s
-        if not (0 < gap <= self.cfg.gap_motion_s and exposure):
-            return 0.0
-        ident = Pose.identity()
-        return blur_length_px(fr.camera, ident, ident.interpolate(self.recent[0].inverse() @ T_wc, min(1.0, exposure / gap)))
+        gap = self._gap_motion(T_wc, fr.stamp)
+        return 0.0 if gap is None else self._blur_px(fr, fr.exposure_s or self.exposure_s, motion=gap)
+
+    def _gap_motion(self, T_wc: Pose, stamp: float | None) -> tuple[Pose, float] | None:
+        """The mean motion (T_rec^-1 T_wc, seconds) from the last good pose, kept while LOST, to ``T_wc`` at ``stamp``,
+        when that pose is at most ``gap_motion_s`` older; else None."""
+        if self.recent is None or self.recent[1] is None or stamp is None:
+            return None
+        gap = stamp - self.recent[1]
+        return (self.recent[0].inverse() @ T_wc, gap) if 0 < gap <= self.cfg.gap_motion_s else None
 
     def _polish(self, r: PnpResult | None, fr: _Frame, fuse: bool = True) -> PnpResult | None:
         """An XFeat pose re-solved by direct alignment to the keyframe's corner patches, starting from it; the
@@ -1169,12 +1174,11 @@ class RenderMatchTracker:
             # predicts the next frame and its blur (with none, frames 21 and 136 of the 960x540 walk were matched sharp
             # in a 20-30 px pan and reported 5-7 cm / 0.75-1.2 deg off)
             self.motion = (self.T_last.inverse() @ r.T_wc, stamp - self.stamp_last)
-        elif ((status == Status.RELOCALIZED or self.T_last is None) and self.recent is not None and stamp is not None
-              and self.recent[1] is not None and 0 < stamp - self.recent[1] <= self.cfg.gap_motion_s):
+        elif status == Status.RELOCALIZED or self.T_last is None:
             # back after a short LOST gap (typically a fast turn), reported or only plausible: the mean motion over
             # the gap predicts the next frame and its blur better than none (with none, the next frame of the turn
             # was matched sharp and reported 5.7 cm / 1.3 deg off at a predicted 0.4 cm, 1280x720 walk)
-            self.motion = (self.recent[0].inverse() @ r.T_wc, stamp - self.recent[1])
+            self.motion = self._gap_motion(r.T_wc, stamp)
         else:
             self.motion = None
         T_prev = self.T_last
