@@ -1159,3 +1159,41 @@ def test_a_frame_relocalized_soon_after_a_fast_turn_lost_the_track_counts_the_tu
     assert blur(0.6) == 0.0  # beyond gap_motion_s (0.5 s): the turn may have ended long ago
     tr.cfg = RMConfig()  # no exposure configured, none calibrated yet
     assert blur(0.1) == 0.0 and blur(0.1, exposure=0.012) == pytest.approx(fx * np.radians(1.8), rel=0.1)
+
+
+def test_a_lost_frame_the_database_cannot_place_is_found_in_views_rendered_where_the_camera_was(rm_setup):
+    """Soon after a reported pose, a LOST frame that no database view places (here: every view stands 30 m away; on
+    the office walk, a close-up of a rack after a whip pan) is matched to views rendered on demand around where the
+    last pose's motion leads, with the frame's own camera, and verified as a database pose is. Off, or past
+    ``look_around_s``, it stays LOST with the database's reason."""
+    from protocol.messages import reason_kind
+    from services.relocalize.database import RelocDB
+
+    renderer, ext, db, seq, _ = rm_setup
+    away = RelocDB(db.view_poses + np.r_[30.0, 0, 0, 0, 0, 0, 0], db.view_start, db.xyz + [30.0, 0, 0], db.desc,
+                   db.vlad, db.vocab, dict(db.meta))
+    f6, f7 = seq.read(6), seq.read(7)
+    s6, G6, G7 = float(f6.stamp), seq.groundtruth.poses[6], seq.groundtruth.poses[7]
+    noise = np.random.default_rng(0).integers(0, 255, f7.image.shape, dtype=np.uint8)
+
+    def after_a_lost_frame(cfg: RMConfig, dt: float):
+        tr = RenderMatchTracker(renderer, ext, away, cfg)
+        assert tr.process(f6.image, seq.camera, prior=G6, stamp=s6).status == Status.TRACKING
+        lost = tr.process(noise, seq.camera, stamp=s6 + 0.05)
+        assert lost.status == Status.LOST
+        if cfg.look_around_s > 0:  # the noise frame looked around too, and says so after the database's reason's kind
+            assert reason_kind(lost.reason) == "no place in the database fits the frame"
+            assert "views rendered where its motion led" in lost.reason
+        return tr, tr.process(f7.image, seq.camera, stamp=s6 + dt)
+
+    only_views = RMConfig(recover_s=0.0)  # the last pose's own render would re-acquire it first
+    tr, r = after_a_lost_frame(only_views, 0.5)
+    assert r.status == Status.RELOCALIZED and r.T_wc is not None
+    dt, dr = G7.distance_to(r.T_wc)
+    assert dt < 0.03 and dr < 0.5
+    pos, camera, views = tr.around
+    assert views.n_views >= 4 and camera == seq.camera and np.linalg.norm(pos - G6.t) < 0.03  # (frame 6 tracked: no velocity yet)
+    for cfg, dt in ((dataclasses.replace(only_views, look_around_s=0.0), 0.5), (only_views, 2.5)):
+        tr, r = after_a_lost_frame(cfg, dt)
+        assert r.status == Status.LOST and r.reason == "no place in the database fits the frame"
+        assert (tr.around is None) == (cfg.look_around_s == 0)  # (the noise frame, 0.05 s after, looked around)

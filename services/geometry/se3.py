@@ -224,3 +224,19 @@ def look_at(eye: Iterable[float], target: Iterable[float], up: Iterable[float] =
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return Pose(np.stack([x, y, z], axis=1), eye)
+
+
+def yaw_sweep(position: Iterable[float], hfov_deg: float, overlap: float = 0.7,
+              pitches_deg: Iterable[float] = (0.0,), min_yaws: int = 4) -> list[Pose]:
+    """Camera-to-world poses at ``position`` looking every way round (world z up): yaw steps of ``overlap`` x the
+    horizontal field of view ``hfov_deg`` (at least ``min_yaws``), each at every pitch in ``pitches_deg``, no roll."""
+    p = np.asarray(position, dtype=np.float64)
+    n_yaw = max(min_yaws, int(np.ceil(360.0 / (overlap * hfov_deg))))
+    poses = []
+    for i in range(n_yaw):
+        yaw = 2 * np.pi * i / n_yaw
+        for pitch in pitches_deg:
+            pr = np.radians(pitch)
+            d = np.array([np.cos(yaw) * np.cos(pr), np.sin(yaw) * np.cos(pr), np.sin(pr)])
+            poses.append(look_at(p, p + d, (0, 0, 1)))
+    return poses

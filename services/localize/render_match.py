@@ -63,7 +63,7 @@ from services.geometry.blur import blur_length_px, motion_blur_linear
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, rate_changed, unroll_moving
-from services.geometry.se3 import Pose
+from services.geometry.se3 import Pose, yaw_sweep
 from services.localize.agreement import structure_agreement
 from services.localize.carry import OdometryCarry
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
@@ -71,6 +71,7 @@ from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
 from services.relocalize.ambiguity import FAR_M
+from services.relocalize.database import DBConfig, RelocDB, view_features
 from services.relocalize.hint import near_hint
 from services.relocalize.reach import FloorPlan
 from services.render.depth_sampling import invented_near, plane_normals, support_fraction
@@ -144,6 +145,13 @@ class RMConfig:
     #                                   than the true place, at 0.08-0.51; right poses score 0.76-1.0 on clean frames
     #                                   (office walks, dark and high-ISO copies, the warehouse), 0.28-0.59 with people
     #                                   over 28 % of the frame, 0.41 with a sign over half of it
+    look_around_s: float = 2.0  # a LOST frame this soon after the last reported pose that no database view places is
+    #                             matched to views rendered on demand where its last velocity leads, every way round
+    #                             with its own camera (0 = off): the database's 90-degree faces at 1 m spacing and set
+    #                             heights share 10-24 inliers with a close-up 0.5 m from a rack after a whip pan (office
+    #                             walk frames 285-299), views with the frame's camera at its own height 40-70
+    look_around_overlap: float = 0.7  # ... their yaw step, as a fraction of the frame's horizontal field of view
+    look_around_step_m: float = 0.3  # ... rendered again once the camera is expected this far from where they were
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
     odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for up to
@@ -367,6 +375,7 @@ class RenderMatchTracker:
         self.recent: tuple[Pose, float | None] | None = None  # last good pose and its stamp, kept while LOST
         self.anchor: _Anchor | None = None  # where the camera was last known to be (a reported pose or a caller's hint)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
+        self.around: tuple[np.ndarray, Camera, RelocDB] | None = None  # views rendered by _look_around: (where, for which camera, them)
         self.lost_frames = 0
         self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
         self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried through LOST frames by the odometry
@@ -879,15 +888,19 @@ class RenderMatchTracker:
 
     def _relocalize(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
                     reach: tuple[np.ndarray, float] | None = None,
-                    walk: tuple[np.ndarray, float] | None = None) -> PnpResult | None:
+                    walk: tuple[np.ndarray, float] | None = None, db: RelocDB | None = None,
+                    scale: float | None = None) -> PnpResult | None:
         """A pose from the database, verified: coarse poses from the best-matching views (one per place), each
         rendered at and matched again until one passes the report gate; refused when two places fit the
         frame about as well (repetitive sites), coarsely or verified. ``near`` = (recent position, radius): search
         only views within reach of it; ``reach`` = (position, radius), else ``near``: refuse a pose beyond it
         (a bay of identical racks 2-4 m on); ``walk`` = (position, metres): refuse a pose the camera cannot have walked
-        to from there through the scan's free space (:meth:`_walkable`: the next aisle over)."""
+        to from there through the scan's free space (:meth:`_walkable`: the next aisle over). ``db``: views to search
+        other than the database (:meth:`_look_around`'s), matched at ``scale`` of the frame's resolution."""
         cfg = self.cfg
-        feats = self._live(fr, self._reloc_scale(fr.camera))
+        db = db or self.db
+        scale = scale or self._reloc_scale(fr.camera)
+        feats = self._live(fr, scale)
         t0 = time.perf_counter()
         reach = reach or near
         # a weak coarse pose is verified only where the camera cannot have reached a look-alike place
@@ -897,10 +910,10 @@ class RenderMatchTracker:
         within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
 
         def search(feats: Features) -> list[tuple[PnpResult, int]]:
-            hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
+            hyps = db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
             if (not hyps or hyps[0][0].n_inliers < need) and cfg.reloc_widen > cfg.reloc_candidates:
-                hyps = self.db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within,
-                                          known=hyps, skip=cfg.reloc_candidates)
+                hyps = db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within,
+                                     known=hyps, skip=cfg.reloc_candidates)
             return hyps
 
         hyps = search(feats)
@@ -910,7 +923,7 @@ class RenderMatchTracker:
             # near a recent pose would pay for it on every frame of a whip pan)
             fr.top_k = cfg.reloc_top_k
             t1 = time.perf_counter()
-            feats = self._live(fr, self._reloc_scale(fr.camera))
+            feats = self._live(fr, scale)
             t0 += time.perf_counter() - t1  # (features_ms)
             hyps = search(feats)
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
@@ -919,7 +932,7 @@ class RenderMatchTracker:
             fr.reason = "no place in the database fits the frame" if not hyps else \
                 f"too few inliers in the database: the best place has {hyps[0][0].n_inliers}, a pose needs {need}"
             return None
-        why = self.db.ambiguous(hyps, ambiguity, far, verify=lambda _: False)  # near rivals: verified below, in turn
+        why = db.ambiguous(hyps, ambiguity, far, verify=lambda _: False)  # near rivals: verified below, in turn
         if why:
             fr.reason = f"ambiguous place: {why}"
             return None
@@ -964,7 +977,7 @@ class RenderMatchTracker:
         coarse, r, self.kf = found
         t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
         fraction = cfg.reloc_check_fraction if near is not None else max(cfg.reloc_check_fraction, cfg.reloc_cold_check_fraction)
-        check = max(cfg.reloc_check, int(np.ceil(fraction * self.db.n_views)))
+        check = max(cfg.reloc_check, int(np.ceil(fraction * db.n_views)))
 
         def verify(rival: PnpResult) -> bool:  # a near rival is a place of its own when it verifies elsewhere
             v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds)
@@ -972,13 +985,42 @@ class RenderMatchTracker:
                     and not self._agreement(fr, self.kf) < cfg.reloc_min_agreement)  # (a wrong aisle is no rival)
 
         kf = self.kf
-        rival = self.db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
-                                  ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify)
+        rival = db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
+                             ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify)
         self.kf = kf
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
         if rival:
             fr.reason = f"ambiguous place: {rival}"
             return None
+        return r
+
+    def _look_around(self, fr: _Frame, a: "_Anchor", stamp: float | None, near, reach, walk) -> PnpResult | None:
+        """A pose for a LOST frame soon after the last reported one (``a``) that the database did not place: views
+        rendered where the last velocity leads (``a``'s position if none), every way round, with the frame's own
+        camera at its tracking resolution, searched and verified as the database is (:meth:`_relocalize`). They are
+        rendered again only once the camera is expected ``look_around_step_m`` from them."""
+        cfg = self.cfg
+        if cfg.look_around_s <= 0 or a.hint or a.stamp is None or stamp is None or not 0 <= stamp - a.stamp <= cfg.look_around_s:
+            return None
+        pos = a.position + (a.velocity * (stamp - a.stamp) if a.velocity is not None else 0.0)
+        scale = self._base_scale(fr.camera)
+        if (self.around is None or self.around[1] != fr.camera
+                or np.linalg.norm(self.around[0] - pos) > cfg.look_around_step_m):
+            t0 = time.perf_counter()
+            cam = fr.camera.undistorted().scaled(scale)
+            hfov = 2 * np.degrees(np.arctan2(cam.width / 2, cam.fx))
+            poses = yaw_sweep(pos, hfov, cfg.look_around_overlap)
+            views = view_features(self.renderer, poses, cam, self.extractor,
+                                  DBConfig(top_k=self.extractor.top_k, depth_radius=cfg.depth_radius,
+                                           depth_max_residual=cfg.depth_max_residual))
+            self.around = (pos, fr.camera, RelocDB.from_views(poses, views, self.db.vocab if self.db is not None else None))
+            fr.tm["look_around_ms"] = 1e3 * (time.perf_counter() - t0)
+            log.debug("looking around at %s: %d views in %.0f ms", np.round(pos, 2), len(poses), fr.tm["look_around_ms"])
+        why = fr.reason
+        r = self._relocalize(fr, near, reach, walk, db=self.around[2], scale=scale)
+        if r is None:
+            inner = (fr.reason or "no pose").replace(" in the database", "")
+            fr.reason = f"{why} (and among {self.around[2].n_views} views rendered where its motion led: {inner})"
         return r
 
     def _agreement(self, fr: _Frame, kf: Keyframe) -> float:
@@ -1147,6 +1189,8 @@ class RenderMatchTracker:
                     if tight < near[1]:
                         reach = (a.position + a.velocity * dt, tight)
             r = self._relocalize(fr, near, reach, walk)
+            if not self._plausible(r) and a is not None and near is not None:
+                r = self._look_around(fr, a, stamp, near, reach, walk) or r
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1

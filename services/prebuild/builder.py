@@ -34,7 +34,7 @@ import numpy as np
 
 from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hamming, level_centres
 from services.geometry.camera import Camera
-from services.geometry.se3 import Pose, look_at
+from services.geometry.se3 import Pose, yaw_sweep
 from services.log import progress
 from services.prebuild.patches import LandmarkPatches, align_to_patches, hole_noise, map_fingerprint, sample_patches
 from services.prebuild.stella_map import DEFAULT_ORB_NAME, MapCamera, MapKeyframe, OrbParams, StellaMap
@@ -79,17 +79,9 @@ def view_poses(positions: np.ndarray, camera: Camera, cfg: BuildConfig = BuildCo
     """Camera-to-world poses: at each position, every yaw direction, pitched up and down (world z up)."""
     hfov = 2 * math.degrees(math.atan2(camera.width / 2, camera.fx))
     vfov = 2 * math.degrees(math.atan2(camera.height / 2, camera.fy))
-    n_yaw = max(4, math.ceil(360.0 / (cfg.yaw_overlap * hfov)))
     pitch = cfg.pitch_deg if cfg.pitch_deg is not None else vfov / 3
-    poses = []
-    for p in np.asarray(positions, float).reshape(-1, 3):
-        for i in range(n_yaw):
-            yaw = 2 * math.pi * i / n_yaw
-            for s in (1, -1):
-                pr = math.radians(s * pitch)
-                d = np.array([math.cos(yaw) * math.cos(pr), math.sin(yaw) * math.cos(pr), math.sin(pr)])
-                poses.append(look_at(p, p + d, (0, 0, 1)))
-    return poses
+    return [T for p in np.asarray(positions, float).reshape(-1, 3)
+            for T in yaw_sweep(p, hfov, cfg.yaw_overlap, (pitch, -pitch))]
 
 
 @dataclass

@@ -82,6 +82,18 @@ class RelocDB:
     def view_pose(self, i: int) -> Pose:
         return Pose.from_tum(self.view_poses[i])
 
+    @classmethod
+    def from_views(cls, poses: list[Pose], views: list[tuple[np.ndarray, np.ndarray]], vocab: np.ndarray | None = None,
+                   meta: dict | None = None) -> "RelocDB":
+        """A database of views (``view_features``' output) rendered at camera-to-world ``poses``; ``vocab``: the VLAD
+        words (a database's own), else one word (the views' mean descriptor residual ranks them)."""
+        vocab = np.zeros((1, 64), np.float32) if vocab is None else vocab
+        starts = np.cumsum([0] + [len(x) for x, _ in views]).astype(np.int64)
+        xyz = np.concatenate([x for x, _ in views]) if views else np.zeros((0, 3))
+        desc = np.concatenate([d for _, d in views]).astype(np.float32) if views else np.zeros((0, 64), np.float32)
+        vlad = np.stack([_vlad(d, vocab) for _, d in views]) if views else np.zeros((0, vocab.size), np.float32)
+        return cls(np.array([T.to_tum() for T in poses]).reshape(-1, 7), starts, xyz, desc, vlad, vocab, dict(meta or {}))
+
     # ---- query -------------------------------------------------------------
     def candidates(self, feats: Features, k: int = 8, near: tuple[np.ndarray, float] | None = None) -> np.ndarray:
         """The ``k`` views whose global descriptor is most similar to the query's; with ``near`` =
@@ -226,28 +238,35 @@ def build_database(renderer, positions: np.ndarray, extractor: XFeatExtractor, c
     size = cfg.face_size
     cam = Camera(size, size, size / 2.0, size / 2.0, (size - 1) / 2.0, (size - 1) / 2.0)
     n_faces = 4 if cfg.faces == "horizontal" else 6
-    poses, starts, xyzs, descs = [], [0], [], []
-    for p in progress(positions, desc="cubemaps", total=len(positions), unit="position"):
-        for T in cubemap_poses(p)[:n_faces]:
-            r = renderer.render(T, cam)
-            f = extractor.extract(r.rgb, top_k=cfg.top_k)
-            X, ok, _ = r.surface_points(f.kpts, cfg.depth_radius, cfg.depth_max_residual)
-            poses.append(T.to_tum())
-            xyzs.append(X[ok])
-            descs.append(f.desc[ok])
-            starts.append(starts[-1] + int(ok.sum()))
-    desc = np.concatenate(descs).astype(np.float32) if descs else np.zeros((0, 64), np.float32)
-    xyz = np.concatenate(xyzs) if xyzs else np.zeros((0, 3))
-    if len(desc) < cfg.vocabulary:
-        raise ValueError(f"only {len(desc)} features in the whole database: is the region of interest inside the scan?")
+    poses = [T for p in positions for T in cubemap_poses(p)[:n_faces]]
+    it = progress(range(0, len(poses), n_faces), desc="cubemaps", total=len(positions), unit="position")
+    views = [v for i in it for v in view_features(renderer, poses[i:i + n_faces], cam, extractor, cfg)]
+    if sum(len(x) for x, _ in views) < cfg.vocabulary:
+        raise ValueError(f"only {sum(len(x) for x, _ in views)} features in the whole database: is the region of "
+                         f"interest inside the scan?")
+    desc = np.concatenate([d for _, d in views]).astype(np.float32)
     rng = np.random.default_rng(0)
     sample = desc[rng.choice(len(desc), min(len(desc), 50000), replace=False)]
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-4)
     cv2.setRNGSeed(0)
     _, _, centres = cv2.kmeans(sample, cfg.vocabulary, None, crit, 2, cv2.KMEANS_PP_CENTERS)
     vocab = (centres / np.linalg.norm(centres, axis=1, keepdims=True)).astype(np.float32)
-    vlad = np.stack([_vlad(descs[i], vocab) for i in range(len(descs))])
-    m = {"positions": len(positions), "views": len(poses), "features": int(len(desc)), "face_size": size,
+    db = RelocDB.from_views(poses, views, vocab)
+    m = {"positions": len(positions), "views": db.n_views, "features": int(len(desc)), "face_size": size,
          "faces": cfg.faces, "top_k": cfg.top_k, "build_seconds": round(time.perf_counter() - t0, 1), **(meta or {})}
-    log.info("database: %d positions, %d views, %d features in %.1f s", len(positions), len(poses), len(desc), m["build_seconds"])
-    return RelocDB(np.array(poses).reshape(-1, 7), np.array(starts, np.int64), xyz, desc, vlad, vocab, m)
+    log.info("database: %d positions, %d views, %d features in %.1f s", len(positions), db.n_views, len(desc), m["build_seconds"])
+    db.meta = m
+    return db
+
+
+def view_features(renderer, poses: list[Pose], camera: Camera, extractor: XFeatExtractor,
+                  cfg: DBConfig = DBConfig()) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Render each of ``poses`` with ``camera``, XFeat on it, keypoints back-projected with the render's depth:
+    per view (world points (N, 3), descriptors (N, 64)), only keypoints on measured, smooth depth."""
+    out = []
+    for T in poses:
+        r = renderer.render(T, camera)
+        f = extractor.extract(r.rgb, top_k=cfg.top_k)
+        X, ok, _ = r.surface_points(f.kpts, cfg.depth_radius, cfg.depth_max_residual)
+        out.append((X[ok], f.desc[ok]))
+    return out
