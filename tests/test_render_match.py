@@ -890,7 +890,9 @@ def test_a_pose_the_motion_cannot_reach_is_not_reported(rm_setup, site_480):
     jump = np.linalg.norm(seq.groundtruth_pose(frames[7].stamp).t - seq.groundtruth_pose(frames[4].stamp).t)
     assert jump > 0.03, jump  # the walk moves enough in three frames to tell
     for check in (True, False):
-        tr = RenderMatchTracker(renderer, ext, db, RMConfig(innovation_sigmas=4.0 if check else float("inf")))
+        # (a short exposure: a jump in one frame interval would otherwise also count as that motion's blur)
+        tr = RenderMatchTracker(renderer, ext, db,
+                                RMConfig(innovation_sigmas=4.0 if check else float("inf"), exposure_s=0.002))
         res = [tr.process(f.image, cam, stamp=float(f.stamp)) for f in frames[:4]]
         assert sum(r.status == Status.TRACKING for r in res) >= 2
         r = tr.process(frames[7].image, cam, stamp=float(frames[4].stamp))
@@ -1197,3 +1199,48 @@ def test_a_lost_frame_the_database_cannot_place_is_found_in_views_rendered_where
         tr, r = after_a_lost_frame(cfg, dt)
         assert r.status == Status.LOST and r.reason == "no place in the database fits the frame"
         assert (tr.around is None) == (cfg.look_around_s == 0)  # (the noise frame, 0.05 s after, looked around)
+
+
+def test_a_tracked_frame_whose_solved_motion_outruns_the_prediction_counts_that_motion_s_blur(rm_setup):
+    """A frame matched for the blur the motion so far predicts, whose solved pose shows it moved much further (a whip
+    pan starting), is as uncertain as that motion's blur makes it. The same frame, stamped as if it came one frame
+    interval after the previous one instead of seven, moved seven frames' worth (~30 px of image motion) in one: exposed
+    half the interval (~15 px of blur) its 1-sigma is ~4x that with an eighth (~4 px, too little to count)."""
+    renderer, ext, _, seq, _ = rm_setup
+    f0, f1, f8 = seq.read(0), seq.read(1), seq.read(8)
+    s0 = float(f0.stamp)
+    dt = float(f1.stamp) - s0
+
+    def track(stamp8: float, exposure: float):
+        tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(exposure_s=exposure))
+        assert tr.process(f0.image, seq.camera, prior=seq.groundtruth.poses[0], stamp=s0).T_wc is not None
+        assert tr.process(f1.image, seq.camera, stamp=s0 + dt).status == Status.TRACKING
+        return tr.process(f8.image, seq.camera, stamp=stamp8)
+
+    on_time = track(s0 + 8 * dt, dt / 2)
+    assert on_time.status == Status.TRACKING and seq.groundtruth.poses[8].distance_to(on_time.T_wc)[0] < 0.03
+    short, half = track(s0 + 2 * dt, dt / 8), track(s0 + 2 * dt, dt / 2)
+    assert short.inliers >= 100 and half.inliers >= 100  # the pose is found either way (and not reported: a 7-frame
+    assert short.status == half.status == Status.LOST    # jump in one interval is away from where the motion leads)
+    assert short.sigma_m == pytest.approx(on_time.sigma_m, rel=0.3)
+    assert half.sigma_m > 2.5 * short.sigma_m and half.sigma_deg > 2.5 * short.sigma_deg
+
+
+def test_a_pose_reacquired_soon_after_the_last_reported_one_carries_the_velocity_since(rm_setup):
+    """Walking goes on through a fast turn: a frame re-acquired within ``gap_motion_s`` of the last reported pose
+    leaves the mean velocity since then for the next relocalization (where _look_around renders); later, none."""
+    renderer, ext, db, seq, _ = rm_setup
+    f3, f4, f6 = seq.read(3), seq.read(4), seq.read(6)
+    G3, G6 = seq.groundtruth.poses[3], seq.groundtruth.poses[6]
+    s3 = float(f3.stamp)
+    dt = float(f4.stamp) - s3
+    noise = np.random.default_rng(0).integers(0, 255, f4.image.shape, dtype=np.uint8)
+    for gap, velocity in ((3 * dt, (G6.t - G3.t) / (3 * dt)), (0.6, None)):
+        tr = RenderMatchTracker(renderer, ext, db)
+        assert tr.process(f3.image, seq.camera, prior=G3, stamp=s3).status == Status.TRACKING
+        assert tr.process(noise, seq.camera, stamp=s3 + dt).status == Status.LOST
+        assert tr.process(f6.image, seq.camera, stamp=s3 + gap).status == Status.RELOCALIZED
+        if velocity is None:
+            assert tr.anchor.velocity is None
+        else:
+            assert np.linalg.norm(tr.anchor.velocity - velocity) < 0.2 * np.linalg.norm(velocity)

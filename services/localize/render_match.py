@@ -1142,6 +1142,15 @@ class RenderMatchTracker:
                         r = self._render_and_refine(fr, r.T_wc if self._plausible(r) else T_pred, tracking=True)
                         rerendered = True
                     r = self._polish(r, fr)
+            if consecutive and self._plausible(r) and r.cov is not None:
+                # the frame's own solved motion can show a faster turn than the frame was matched for: a whip pan
+                # starting (office seed 2 frame 138: predicted 4 px from the slow frame before, it had turned 7 deg since,
+                # ~22 px of blur, and was reported 1.5-4.1 cm / 0.3-0.6 deg off at a predicted 0.44 cm / 0.07 deg)
+                exposure = self._exposure(fr)
+                seen = self._blur_px(fr, exposure, motion=(self.T_last.inverse() @ r.T_wc, fr.dt_next))
+                if seen > max(self.cfg.blur_min_px, 2.0 * self._blur_px(fr, exposure)):
+                    log.debug("solved motion blurs %.0f px, matched for %.0f px", seen, self._blur_px(fr, exposure))
+                    r.cov = self._blur_scaled(r.cov, seen * self._base_scale(camera) / r.px_factor)
             if fr.motion is None and stamp is not None and self._good(r):
                 # no motion to predict the blur by (right after a relocalization not soon after the last pose): read
                 # it from the image against a render at the pose, and let it weigh on the pose's uncertainty (office
@@ -1236,6 +1245,14 @@ class RenderMatchTracker:
             v = None  # world velocity, from this frame's tracked motion (none if implausibly fast: stamps too close)
             if self.motion is not None and status == Status.TRACKING and consecutive:
                 v = (r.T_wc.t - T_prev.t) / self.motion[1]
+                v = v if np.linalg.norm(v) <= self.cfg.max_speed_mps else None
+            a = self.anchor
+            if (v is None and not cold and a is not None and not a.hint and a.stamp is not None
+                    and 0 < stamp - a.stamp <= self.cfg.gap_motion_s):
+                # re-acquired soon after the last reported pose (in a fast turn): the mean velocity since then. Walking
+                # goes on through a turn; with none, the views _look_around renders after the next LOST frame stay where
+                # the turn began (office seed 2: a 100-degree whip at frame 228, then 60 frames LOST walking 1.3 m/s)
+                v = (r.T_wc.t - a.position) / (stamp - a.stamp)
                 v = v if np.linalg.norm(v) <= self.cfg.max_speed_mps else None
             # confirmed once tracked; a pose re-acquired near the last one keeps that one's standing
             confirmed = not cold and (status == Status.TRACKING or self.anchor is None or self.anchor.confirmed)
