@@ -889,14 +889,15 @@ class RenderMatchTracker:
     def _relocalize(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
                     reach: tuple[np.ndarray, float] | None = None,
                     walk: tuple[np.ndarray, float] | None = None, db: RelocDB | None = None,
-                    scale: float | None = None) -> PnpResult | None:
+                    scale: float | None = None, strong: bool = False) -> PnpResult | None:
         """A pose from the database, verified: coarse poses from the best-matching views (one per place), each
         rendered at and matched again until one passes the report gate; refused when two places fit the
         frame about as well (repetitive sites), coarsely or verified. ``near`` = (recent position, radius): search
         only views within reach of it; ``reach`` = (position, radius), else ``near``: refuse a pose beyond it
         (a bay of identical racks 2-4 m on); ``walk`` = (position, metres): refuse a pose the camera cannot have walked
         to from there through the scan's free space (:meth:`_walkable`: the next aisle over). ``db``: views to search
-        other than the database (:meth:`_look_around`'s), matched at ``scale`` of the frame's resolution."""
+        other than the database (:meth:`_look_around`'s), matched at ``scale`` of the frame's resolution; ``strong``:
+        a coarse pose needs ``reloc_min_inliers`` to be verified even where the camera cannot be far."""
         cfg = self.cfg
         db = db or self.db
         scale = scale or self._reloc_scale(fr.camera)
@@ -904,7 +905,8 @@ class RenderMatchTracker:
         t0 = time.perf_counter()
         reach = reach or near
         # a weak coarse pose is verified only where the camera cannot have reached a look-alike place
-        need = cfg.reloc_weak_inliers if reach is not None and reach[1] <= cfg.reloc_weak_reach_m else cfg.reloc_min_inliers
+        weak = not strong and reach is not None and reach[1] <= cfg.reloc_weak_reach_m
+        need = cfg.reloc_weak_inliers if weak else cfg.reloc_min_inliers
         ambiguity, far = cfg.reloc_ambiguity, (cfg.reloc_cold_ambiguity if near is None else None)
         floor = min(need, int(min(ambiguity, far or ambiguity) * cfg.reloc_min_inliers))  # rivals may be weaker than the best
         within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
@@ -1017,7 +1019,9 @@ class RenderMatchTracker:
             fr.tm["look_around_ms"] = 1e3 * (time.perf_counter() - t0)
             log.debug("looking around at %s: %d views in %.0f ms", np.round(pos, 2), len(poses), fr.tm["look_around_ms"])
         why = fr.reason
-        r = self._relocalize(fr, near, reach, walk, db=self.around[2], scale=scale)
+        # (views with the frame's own camera near where it is share more with it than the database's: a weak coarse
+        #  pose among them is mostly a blurred frame's chance fit, and verifying each cost ~1 s a frame in a whip pan)
+        r = self._relocalize(fr, near, reach, walk, db=self.around[2], scale=scale, strong=True)
         if r is None:
             inner = (fr.reason or "no pose").replace(" in the database", "")
             fr.reason = f"{why} (and among {self.around[2].n_views} views rendered where its motion led: {inner})"
