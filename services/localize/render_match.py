@@ -13,8 +13,9 @@ refines its pose. Gates on inliers, reprojection error and the pose's predicted 
 solutions into LOST, never a guess; a pose that is plausible (enough inliers, small error) but less
 certain than promised is not reported, yet tracking continues from it, so a few weak frames in a fast
 turn do not cost a relocalization. With no pose (first frame, after LOST) the relocalization database gives a coarse pose,
-which a render at that pose refines before tracking starts; soon after a reported pose, where the database places
-nothing (a close-up its views, a metre off, barely share), views rendered on demand where the camera was heading. With the device's own odometry (``motion``) a LOST
+which a render at that pose refines before tracking starts; soon after a reported pose, where no database view places
+the frame (a close-up that views a metre off barely share), views rendered on demand where the camera was heading
+do. With the device's own odometry (``motion``) a LOST
 frame's pose is carried on by it for a few seconds instead, unreported, and the next frame tracks from there.
 
 Three things keep it accurate where a plain render-and-match is not:
