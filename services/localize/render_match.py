@@ -998,15 +998,15 @@ class RenderMatchTracker:
             return None
         return r
 
-    def _look_around(self, fr: _Frame, a: "_Anchor", stamp: float | None, near, reach, walk) -> PnpResult | None:
+    def _look_around(self, fr: _Frame, a: "_Anchor", near, reach, walk) -> PnpResult | None:
         """A pose for a LOST frame soon after the last reported one (``a``) that the database did not place: views
         rendered where the last velocity leads (``a``'s position if none), every way round, with the frame's own
         camera at its tracking resolution, searched and verified as the database is (:meth:`_relocalize`). They are
         rendered again only once the camera is expected ``look_around_step_m`` from them."""
         cfg = self.cfg
-        if cfg.look_around_s <= 0 or a.hint or a.stamp is None or stamp is None or not 0 <= stamp - a.stamp <= cfg.look_around_s:
+        if cfg.look_around_s <= 0 or a.hint or a.stamp is None or fr.stamp is None or not 0 <= fr.stamp - a.stamp <= cfg.look_around_s:
             return None
-        pos = a.position + (a.velocity * (stamp - a.stamp) if a.velocity is not None else 0.0)
+        pos = a.position + (a.velocity * (fr.stamp - a.stamp) if a.velocity is not None else 0.0)
         scale = self._base_scale(fr.camera)
         if (self.around is None or self.around[1] != fr.camera
                 or np.linalg.norm(self.around[0] - pos) > cfg.look_around_step_m):
@@ -1017,7 +1017,7 @@ class RenderMatchTracker:
             views = view_features(self.renderer, poses, cam, self.extractor,
                                   DBConfig(top_k=self.extractor.top_k, depth_radius=cfg.depth_radius,
                                            depth_max_residual=cfg.depth_max_residual))
-            self.around = (pos, fr.camera, RelocDB.from_views(poses, views, self.db.vocab if self.db is not None else None))
+            self.around = (pos, fr.camera, RelocDB.from_views(poses, views, self.db.vocab))  # (called with a database only)
             fr.tm["look_around_ms"] = 1e3 * (time.perf_counter() - t0)
             log.debug("looking around at %s: %d views in %.0f ms", np.round(pos, 2), len(poses), fr.tm["look_around_ms"])
         why = fr.reason
@@ -1154,8 +1154,9 @@ class RenderMatchTracker:
                 # ~22 px of blur, and was reported 1.5-4.1 cm / 0.3-0.6 deg off at a predicted 0.44 cm / 0.07 deg)
                 exposure = self._exposure(fr)
                 seen = self._blur_px(fr, exposure, motion=(self.T_last.inverse() @ r.T_wc, fr.dt_next))
-                if seen > max(self.cfg.blur_min_px, 2.0 * self._blur_px(fr, exposure)):
-                    log.debug("solved motion blurs %.0f px, matched for %.0f px", seen, self._blur_px(fr, exposure))
+                matched = self._blur_px(fr, exposure)
+                if seen > max(self.cfg.blur_min_px, 2.0 * matched):
+                    log.debug("solved motion blurs %.0f px, matched for %.0f px", seen, matched)
                     r.cov = self._blur_scaled(r.cov, seen * self._base_scale(camera) / r.px_factor)
             if fr.motion is None and stamp is not None and self._good(r):
                 # no motion to predict the blur by (right after a relocalization not soon after the last pose): read
@@ -1205,7 +1206,7 @@ class RenderMatchTracker:
                         reach = (a.position + a.velocity * dt, tight)
             r = self._relocalize(fr, near, reach, walk)
             if not self._plausible(r) and a is not None and near is not None:
-                r = self._look_around(fr, a, stamp, near, reach, walk) or r
+                r = self._look_around(fr, a, near, reach, walk) or r
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1

@@ -83,11 +83,10 @@ class RelocDB:
         return Pose.from_tum(self.view_poses[i])
 
     @classmethod
-    def from_views(cls, poses: list[Pose], views: list[tuple[np.ndarray, np.ndarray]], vocab: np.ndarray | None = None,
+    def from_views(cls, poses: list[Pose], views: list[tuple[np.ndarray, np.ndarray]], vocab: np.ndarray,
                    meta: dict | None = None) -> "RelocDB":
-        """A database of views (``view_features``' output) rendered at camera-to-world ``poses``; ``vocab``: the VLAD
-        words (a database's own), else one word (the views' mean descriptor residual ranks them)."""
-        vocab = np.zeros((1, 64), np.float32) if vocab is None else vocab
+        """A database of views (``view_features``' output) rendered at camera-to-world ``poses``, with the VLAD words
+        ``vocab`` (K, 64) its global descriptors are made of (a database's own)."""
         starts = np.cumsum([0] + [len(x) for x, _ in views]).astype(np.int64)
         xyz = np.concatenate([x for x, _ in views]) if views else np.zeros((0, 3))
         desc = np.concatenate([d for _, d in views]).astype(np.float32) if views else np.zeros((0, 64), np.float32)
