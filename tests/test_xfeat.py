@@ -25,3 +25,24 @@ def test_fast_nms_matches_xfeats_own_detection(small_site):
     np.testing.assert_array_equal(ours.desc, theirs.desc)
     # a flat image has no keypoints: an empty result, not an error
     assert len(ext.extract(np.full((96, 128), 90, np.uint8)).kpts) == 0
+
+
+def test_descriptors_matched_on_a_torch_device_pair_as_numpy_does(small_site):
+    """The GPU server matches on the extractor's device (services.features.matching): the same mutual pairs as numpy,
+    on real XFeat descriptors of two frames of a walk (torch's CPU here; CUDA too where there is one)."""
+    from services.features.matching import mutual_nn
+    from services.features.xfeat import XFeatExtractor
+    from services.io.sequence import open_sequence
+
+    torch.set_num_threads(1)
+    out, _, _ = small_site
+    seq = open_sequence(out / "seq_00")
+    ext = XFeatExtractor(device="cpu", top_k=512)
+    a, b = (ext.extract(seq.read(i).image).desc for i in (2, 5))
+    ref = mutual_nn(a, b, 0.82)
+    assert len(ref) > 50
+    for dev in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
+        got = mutual_nn(a, b, 0.82, device=dev)
+        assert got.dtype == np.int64 and got.shape == ref.shape, dev
+        np.testing.assert_array_equal(got, ref)
+    assert mutual_nn(a[:0], b, device="cpu").shape == (0, 2)

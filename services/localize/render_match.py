@@ -363,6 +363,10 @@ class RenderMatchTracker:
         self.extractor = extractor
         self.db = db
         self.cfg = cfg
+        dev = getattr(extractor, "device", None)  # descriptors are matched on the extractor's GPU, if it has one
+        self.match_device = dev if str(dev).startswith("cuda") else None
+        if db is not None:
+            db.match_device = self.match_device
         self._plan = plan  # the scan's obstacles, for where a camera can have walked (shared by a server's trackers)
         self.relocalizations = 0
         # exposure calibration: per candidate (fraction of the frame interval) the summed share of inliers it got
@@ -534,7 +538,7 @@ class RenderMatchTracker:
         ``px_factor``: frame pixels per feature pixel relative to the base resolution (2 at half
         resolution): the RANSAC threshold and the reprojection gate scale with it."""
         t0 = time.perf_counter()
-        m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos)
+        m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos, self.match_device)
         uv, X = live.kpts[m[:, 0]].astype(np.float64), xyz[m[:, 1]]
         if gray is not None and len(m):
             uv, X = self._refine(fr, uv, X, feats.kpts[m[:, 1]], gray)
@@ -1017,7 +1021,9 @@ class RenderMatchTracker:
             views = view_features(self.renderer, poses, cam, self.extractor,
                                   DBConfig(top_k=self.extractor.top_k, depth_radius=cfg.depth_radius,
                                            depth_max_residual=cfg.depth_max_residual))
-            self.around = (pos, fr.camera, RelocDB.from_views(poses, views, self.db.vocab))  # (called with a database only)
+            around = RelocDB.from_views(poses, views, self.db.vocab)  # (called with a database only)
+            around.match_device = self.match_device
+            self.around = (pos, fr.camera, around)
             fr.tm["look_around_ms"] = 1e3 * (time.perf_counter() - t0)
             log.debug("looking around at %s: %d views in %.0f ms", np.round(pos, 2), len(poses), fr.tm["look_around_ms"])
         why = fr.reason
@@ -1059,7 +1065,7 @@ class RenderMatchTracker:
         kf = self._keyframe(T_wc, fr)
         feats, xyz, gray = self._sharp_points(kf, fr)
         live = self._live(fr, kf.scale)
-        m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos)
+        m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos, self.match_device)
         uv, X = live.kpts[m[:, 0]].astype(np.float64), xyz[m[:, 1]]
         if gray is not None and len(m):
             uv, X = self._refine(fr, uv, X, feats.kpts[m[:, 1]], gray)

@@ -70,6 +70,7 @@ class RelocDB:
     vlad: np.ndarray  # (V, K*64) float32
     vocab: np.ndarray  # (K, 64) float32
     meta: dict = field(default_factory=dict)
+    match_device: object = None  # a torch device to match descriptors on (the extractor's GPU); None = numpy
 
     @property
     def n_views(self) -> int:
@@ -111,7 +112,7 @@ class RelocDB:
         out = []
         for v in views:
             xyz, desc = self.view(v)
-            m = mutual_nn(feats.desc, desc, min_cos=0.8)
+            m = mutual_nn(feats.desc, desc, min_cos=0.8, device=self.match_device)
             if len(m) < min_inliers:
                 continue
             # hard RANSAC counts, not the soft refinement's: these counts decide which places are rivals, and a soft
