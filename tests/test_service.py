@@ -291,3 +291,89 @@ def test_a_hint_of_where_the_client_starts_reaches_the_tracker(service, small_si
         assert ok.status.has_pose and G.distance_to(reply_pose(ok))[0] < 0.05, ok
         with pytest.raises(ValueError, match="radius_m"):
             robot.localize(frame, seq.camera, near=(tuple(G.t), 0.0))
+
+
+def test_the_odometry_of_frames_the_server_skipped_reaches_the_next_tracked_frame(service, small_site):
+    """A frame's ``motion`` is since the frame sent before it. Under load the server skips frames (latest frame wins,
+    deadlines): the next frame it tracks must get the motion from the last tracked frame, the skipped ones' composed
+    in front of its own, or the tracker predicts from a fraction of the motion and its odometry check turns it off.
+    Real server and tracker; the client's tracker is wrapped only to see the motion it is given."""
+    import cv2
+
+    from protocol.messages import PoseMsg
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    gt = seq.groundtruth.poses
+    intr = Intrinsics(**seq.camera.to_dict())
+    jpg = [cv2.imencode(".jpg", seq.read(i).image)[1].tobytes() for i in range(12)]
+
+    def req(i, **kw):  # frame i with the true motion since frame i-1, as a device's odometry gives it
+        m = gt[i - 1].inverse() @ gt[i]
+        return _req(client="odo", seq=i, image=jpg[i], intrinsics=intr, stamp=float(seq.stamps[i]),
+                    motion=PoseMsg.from_tum(m.to_tum()), **kw)
+
+    assert cl.request_raw(encode(req(1)), "w0", 20.0, client_key="odo").status.has_pose
+    seen: list = []  # (seq, motion) as the tracker got them
+    t = srv.clients["odo"].tracker
+    real = t.process
+
+    def spy(image, camera, prior, motion, **kw):
+        seen.append((kw.get("stamp"), motion))
+        return real(image, camera, prior, motion, **kw)
+
+    t.process = spy
+    try:
+        results = {}
+
+        def fire(i, **kw):
+            results[i] = cl.request_raw(encode(req(i, **kw)), "w0", 20.0, client_key="odo")
+
+        def other():  # another client's first frame (a cold relocalization) keeps the server's one worker busy
+            results["other"] = cl.request_raw(encode(_req(client="other", seq=1, image=jpg[0], intrinsics=intr)), "w0",
+                                              20.0, client_key="other")
+
+        threads = [threading.Thread(target=other)]
+        threads[0].start()
+        time.sleep(0.02)
+        for i in range(2, 9):  # 2..7 arrive while the worker is busy: superseded, in order, by 8
+            threads.append(threading.Thread(target=fire, args=(i,)))
+            threads[-1].start()
+            time.sleep(0.002)
+        for th in threads:
+            th.join(30)
+        fire(9, deadline_ms=0.001)  # taken, but past its deadline
+        fire(10)
+    finally:
+        t.process = real
+    assert results.pop("other").status is not Status.DROPPED
+    st = {i: results[i].status for i in results}
+    assert st[9] is Status.DROPPED and results[9].error is ErrorCode.DEADLINE, st
+    assert sum(s is Status.DROPPED and results[i].error is ErrorCode.SUPERSEDED for i, s in st.items()) >= 3, st
+    tracked = [i for i in sorted(results) if st[i] is not Status.DROPPED]
+    assert tracked[-1] == 10 and len(seen) == len(tracked), (tracked, seen)
+    stamp_to_i = {float(seq.stamps[i]): i for i in range(12)}
+    prev = 1
+    for stamp, motion in seen:
+        i = stamp_to_i[stamp]
+        want = gt[prev].inverse() @ gt[i]  # from the last tracked frame, whatever was skipped between
+        assert motion is not None, i
+        dt, dr = want.distance_to(motion)
+        assert dt < 1e-6 and dr < 1e-4, (prev, i, dt, dr)
+        prev = i
+    assert prev == 10
+
+
+def test_a_streamed_frame_after_unreadable_ones_carries_their_odometry(small_site):
+    """`cristal stream` does not send a frame whose file is missing or broken: the next frame's motion is since the
+    last frame sent (the unsent ones' composed in front of its own), unknown if any of them had none."""
+    from services.client.stream import _since_last_sent
+    from services.io.sequence import open_sequence
+
+    gt = open_sequence(small_site[0] / "seq_00").groundtruth.poses
+    m = [gt[i - 1].inverse() @ gt[i] for i in range(1, 5)]  # motions into frames 1..4
+    dt, dr = (gt[0].inverse() @ gt[4]).distance_to(_since_last_sent(m[:3], m[3]))  # frames 1-3 unsent
+    assert dt < 1e-9 and dr < 1e-6
+    assert _since_last_sent([], m[3]) is m[3]
+    assert _since_last_sent([m[0], None], m[3]) is None and _since_last_sent([m[0]], None) is None

@@ -29,6 +29,14 @@ __all__ = ["StreamStats", "stream_sequence", "sources_path"]
 log = logging.getLogger("cristal.client")
 
 
+def _since_last_sent(unsent: list, motion):
+    """A frame's odometry motion since the last frame sent: the motions of the frames not sent between (each since the
+    one before it) composed in front of its own; None when any of them is unknown."""
+    for m in reversed(unsent):
+        motion = None if m is None or motion is None else m @ motion
+    return motion
+
+
 def sources_path(traj_path: str | Path) -> Path:
     p = Path(traj_path)
     return p.with_name(p.stem + ".sources.txt")
@@ -102,11 +110,13 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
     t_start = time.perf_counter()
     period = 1.0 / fps if fps and fps > 0 else 0.0
     motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else [None] * n
+    unsent: list = []  # motions of frames not sent since the last one that was (unreadable): the next carries them
     try:
         for i, frame in enumerate(progress(seq.frames(tolerant=True), desc="streaming", total=n, unit="frame")):
             if i >= n:
                 break
             if frame.image is None:  # a missing or broken file (logged): no pose for it, the stream goes on
+                unsent.append(motions[i])
                 st.frames += 1
                 st.none += 1
                 st.rows.append((frame.stamp, "-", "unreadable", "-", float("nan")))
@@ -123,11 +133,12 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
                 stamp_f = float(frame.stamp)
             except ValueError:
                 stamp_f = float(i)
+            motion, unsent = _since_last_sent(unsent, motions[i]), []
             if client is not None:
                 data, enc = _frame_bytes(seq, i, frame.image)
                 t0 = time.perf_counter()
                 rep = client.localize(data, cam, stamp=stamp_f, stamp_text=frame.stamp, encoding=enc, deadline_ms=deadline_ms,
-                                      motion=motions[i], readout_s=readout_s, near=near if not len(traj) else None)
+                                      motion=motion, readout_s=readout_s, near=near if not len(traj) else None)
                 rtt = 1e3 * (time.perf_counter() - t0)
                 if rep is None:
                     st.missed += 1
@@ -155,7 +166,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
                 if fallback is not None:
                     fallback.seed(T, stamp=stamp_f)
             elif fallback is not None:
-                lr = fallback.process(frame.image, cam, motion=motions[i], stamp=stamp_f, readout_s=readout_s,
+                lr = fallback.process(frame.image, cam, motion=motion, stamp=stamp_f, readout_s=readout_s,
                                       near=near if not len(traj) else None)
                 if lr.T_wc is not None:
                     T, source = lr.T_wc, "local"

@@ -133,6 +133,39 @@ class _Client:
     last_seq: int = -1
     T_last: Pose | None = None
     frames: int = 0
+    # the device's odometry over frames of this client that were not tracked since the last tracked one (superseded,
+    # past their deadline, undecodable): a frame's ``motion`` is since the frame sent before it, so the next tracked
+    # frame gets these composed in front of its own; a skipped frame without one breaks the chain (None then). A frame
+    # rejected on arrival, before it could be pending (bad intrinsics, an undecodable message), loses its motion.
+    skipped: Pose | None = None
+    skipped_unknown: bool = False
+
+    def skip(self, req: FrameRequest) -> None:
+        """The pending ``req`` is superseded: keep its motion for the next frame taken (under the server's lock)."""
+        if req.motion is None:
+            self.skipped, self.skipped_unknown = None, True
+        elif not self.skipped_unknown:
+            m = Pose.from_tum(req.motion.as_tum())
+            self.skipped = m if self.skipped is None else self.skipped @ m
+
+    def take_motion(self, req: FrameRequest) -> Pose | None:
+        """The motion from the frame before the skipped ones to ``req``'s, as ``req`` is taken to be tracked (under the
+        server's lock, in arrival order); forgets the skipped ones."""
+        m = Pose.from_tum(req.motion.as_tum()) if req.motion is not None else None
+        if self.skipped_unknown or req.reset:
+            m = None
+        elif m is not None and self.skipped is not None:
+            m = self.skipped @ m
+        self.skipped, self.skipped_unknown = None, False
+        return m
+
+    def untake(self, motion: Pose | None) -> None:
+        """A taken frame was not tracked after all (past its deadline, undecodable): its motion goes back in front of
+        whatever was skipped since it was taken (under the server's lock)."""
+        if motion is None:
+            self.skipped, self.skipped_unknown = None, True
+        elif not self.skipped_unknown:
+            self.skipped = motion if self.skipped is None else motion @ self.skipped
 
 
 class LocalizationServer:
@@ -329,10 +362,13 @@ class LocalizationServer:
                     _event(logging.INFO, "client_joined", client=req.client, clients=len(self.clients))
             if c is not None:
                 c.last_seen = time.time()
-                if req.seq <= c.last_seq and not req.reset:
-                    old = (query, req)
+                newest = max(c.last_seq, c.pending[1].seq if c.pending is not None else -1)
+                if req.seq <= newest and not req.reset:
+                    old = (query, req)  # (out of order: its motion is older than what was tracked since)
                 else:
                     old = c.pending[:2] if c.pending is not None else None
+                    if old is not None:
+                        c.skip(old[1])
                     c.pending = (query, req, cam, t0, decode_ms)
                     if not c.busy and not c.queued:
                         c.queued = True
@@ -344,7 +380,7 @@ class LocalizationServer:
         if old is not None:
             q_old, r_old = old
             why = "a newer frame of this client arrived first" if r_old is not req else \
-                f"frame {req.seq} is not newer than frame {c.last_seq}, already taken"
+                f"frame {req.seq} is not newer than frame {newest}, already taken or waiting"
             self._reject(q_old, r_old.client, r_old.seq, Status.DROPPED, ErrorCode.SUPERSEDED, why,
                          r_old.stamp, r_old.stamp_text)
 
@@ -363,8 +399,9 @@ class LocalizationServer:
                 query, req, cam, t0, decode_ms = c.pending
                 c.pending, c.queued, c.busy = None, False, True
                 c.last_seq = max(c.last_seq, req.seq)
+                motion = c.take_motion(req)
             try:
-                self._process(c, query, req, cam, t0, decode_ms)
+                self._process(c, query, req, cam, t0, decode_ms, motion)
             except Exception as e:  # noqa: BLE001 - one bad frame must not stop the worker
                 log.exception("frame %s/%s failed", cid, req.seq)
                 self._reject(query, req.client, req.seq, Status.REJECTED, ErrorCode.INTERNAL,
@@ -376,11 +413,15 @@ class LocalizationServer:
                         c.queued = True
                         self.ready.put(cid)
 
-    def _process(self, c: _Client, query, req: FrameRequest, cam: Camera, t0: float, decode_ms: float) -> None:
+    def _process(self, c: _Client, query, req: FrameRequest, cam: Camera, t0: float, decode_ms: float,
+                 motion: Pose | None = None) -> None:
+        """Track one frame of client ``c``; ``motion``: the device's odometry since the last tracked frame."""
         t_start = time.perf_counter()
         queue_ms = 1e3 * (t_start - t0)
         tm = {"decode_ms": decode_ms, "queue_ms": queue_ms}
         if req.deadline_ms is not None and queue_ms > req.deadline_ms:
+            with self.lock:
+                c.untake(motion)
             self._reject(query, req.client, req.seq, Status.DROPPED, ErrorCode.DEADLINE,
                          f"waited {queue_ms:.0f} ms, over the frame's deadline of {req.deadline_ms:.0f} ms",
                          req.stamp, req.stamp_text, tm)
@@ -390,6 +431,8 @@ class LocalizationServer:
             img = decode_image(req)
             tm["image_ms"] = 1e3 * (time.perf_counter() - t1)
         except _Rejected as e:
+            with self.lock:
+                c.untake(motion)
             self._reject(query, req.client, req.seq, Status.REJECTED, e.code, e.reason, req.stamp, req.stamp_text)
             return
         if c.tracker is None:
@@ -398,7 +441,6 @@ class LocalizationServer:
             c.tracker.reset()
             c.T_last = None
         prior = Pose.from_tum(req.prior.as_tum()) if req.prior is not None else None
-        motion = Pose.from_tum(req.motion.as_tum()) if req.motion is not None else None
         extra = {"readout_s": req.readout_s} if req.readout_s else {}  # (backends from before them need not take them)
         if req.near is not None:
             extra["near"] = ((req.near.x, req.near.y, req.near.z), req.near.radius_m)
