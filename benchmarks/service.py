@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol import keys  # noqa: E402
 from protocol.codec import decode, encode  # noqa: E402
-from protocol.messages import FrameRequest, ImageEncoding, Intrinsics, PoseReply  # noqa: E402
+from protocol.messages import FrameRequest, ImageEncoding, Intrinsics, PoseMsg, PoseReply  # noqa: E402
 
 
 def _rss_mb(pid: int) -> float:
@@ -58,7 +58,10 @@ def _ping_pong(i: int, n: int) -> int:
     return k if k < n else 2 * (n - 1) - k
 
 
-def run_clients(port: int, n: int, seconds: float, fps: float, frames: list[bytes], intr: Intrinsics, server: str) -> dict:
+def run_clients(port: int, n: int, seconds: float, fps: float, frames: list[bytes], intr: Intrinsics, server: str,
+                poses: list | None = None) -> dict:
+    """N clients streaming ``frames`` (ping-pong) at ``fps`` for ``seconds``; ``poses``: the frames' true camera-to-world
+    poses, to send each frame's motion since the one before as a device's odometry would."""
     import zenoh
 
     from services.zconfig import make_config
@@ -78,8 +81,14 @@ def run_clients(port: int, n: int, seconds: float, fps: float, frames: list[byte
         while t_next < t_end:
             time.sleep(max(0.0, t_next - time.perf_counter()))
             seq += 1
-            img = frames[_ping_pong(seq, len(frames))]
+            i = _ping_pong(seq, len(frames))
+            img = frames[i]
+            motion = None
+            if poses is not None:
+                m = poses[_ping_pong(seq - 1, len(frames))].inverse() @ poses[i]
+                motion = PoseMsg.from_tum(m.to_tum())
             payload = encode(FrameRequest(client=cid, seq=seq, stamp=time.time(), image=img, encoding=ImageEncoding.JPEG,
+                                          motion=motion,
                                           intrinsics=intr, deadline_ms=1000))
             t0 = time.perf_counter()
             got = {"r": False}
@@ -164,6 +173,8 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=60, help="frames of seq_00 cycled through")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--workers", type=int, default=1, help="the server's worker threads (frames of different clients in parallel)")
+    ap.add_argument("--odometry", action="store_true",
+                    help="send each frame's motion since the one before (from the ground truth), as a headset's VIO would")
     ap.add_argument("--json", help="write the rows here too")
     a = ap.parse_args()
     from services.io.sequence import open_sequence
@@ -172,6 +183,7 @@ def main() -> int:
     seq = open_sequence(site / "seq_00")
     frames = [seq.files[i].read_bytes() for i in range(min(a.frames, len(seq)))]
     intr = Intrinsics(**seq.camera.to_dict())
+    poses = seq.groundtruth.poses[:len(frames)] if a.odometry else None
     port = _free_port()
     env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
     srv = subprocess.Popen([sys.executable, "-m", "services.cli", "serve", str(site / "scan.ply"), "--db", str(site / "reloc.npz"),
@@ -190,8 +202,8 @@ def main() -> int:
         rows = []
         for n in a.clients:
             if a.warmup > 0:  # every client relocalized and its exposure calibrated before the window that counts
-                run_clients(port, n, a.warmup * n, a.fps, frames, intr, "bench")
-            r = run_clients(port, n, a.seconds, a.fps, frames, intr, "bench")
+                run_clients(port, n, a.warmup * n, a.fps, frames, intr, "bench", poses)
+            r = run_clients(port, n, a.seconds, a.fps, frames, intr, "bench", poses)
             r["rss_mb"] = _rss_mb(srv.pid)
             rows.append(r)
             print(json.dumps(r), file=sys.stderr, flush=True)
@@ -202,7 +214,7 @@ def main() -> int:
           f"localization p50 {sq['localize_p50']:.1f} ms -> the service adds p50 {sq['added_p50']:.2f} ms, "
           f"p99 {sq['added_p99']:.2f} ms (of which Zenoh + msgpack, outside the server: p50 {sq['transport_p50']:.2f} ms)")
     print(f"server RSS after warm-up {rss0:.0f} MB; {a.fps:.0f} FPS per client for {a.seconds:.0f} s after N x {a.warmup:.0f} s "
-          f"unmeasured; {a.workers} worker(s); "
+          f"unmeasured; {a.workers} worker(s); odometry {'sent' if a.odometry else 'none'}; "
           f"device {a.device}; site {site}")
     print("| clients | sent | poses | poses/s | lost | dropped | RTT p50 ms | RTT p99 ms | server p50 ms | localize p50 ms "
           "| overhead p50 ms | overhead p99 ms | server RSS MB |")
