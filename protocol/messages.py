@@ -178,7 +178,9 @@ class FrameRequest(_Msg):
     - ``motion``: optional relative motion since the previous frame from the device's odometry, as
       ``T_prev_cur`` (the current camera in the previous camera's frame). The server predicts
       ``T_wc = T_wc_prev @ motion`` when it has a previous pose, and after a LOST frame carries that pose on
-      with it for a few seconds (unreported), so tracking resumes without a relocalization.
+      with it for a few seconds (unreported), so tracking resumes without a relocalization. Send every frame's
+      motion since the frame sent before it, whatever the server answered: the server composes the motions of the
+      frames it skips (latest frame wins, deadlines) in front of the next one it tracks.
     - ``exposure_s``: optional exposure time of this frame (seconds), when the camera reports it. Fast
       frames are blurred; the server blurs its render to match, with this time if given (otherwise it
       calibrates one per client from the first fast frames).
@@ -190,7 +192,8 @@ class FrameRequest(_Msg):
       client: until one is reported, relocalization searches only as far from it as the camera can have moved since
       (3 m/s), so a look-alike place elsewhere (an aisle of identical racks) does not leave the start ambiguous.
       Ignored while the client is tracked.
-    - ``reset``: forget this client's state (tracking starts over, by relocalization unless ``prior`` is given).
+    - ``reset``: forget this client's state (tracking starts over, by relocalization unless ``prior`` is given). A
+      frame the server skips (superseded, past its deadline) hands its reset to the next frame it tracks.
     - ``map``: optional map id the client expects; a server serving another map rejects with ``unknown_map``.
     - ``deadline_ms``: how long the client will wait for the reply; the server drops the frame (``dropped/deadline``)
       if it cannot start it within that budget.

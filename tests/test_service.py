@@ -377,3 +377,36 @@ def test_a_streamed_frame_after_unreadable_ones_carries_their_odometry(small_sit
     assert dt < 1e-9 and dr < 1e-6
     assert _since_last_sent([], m[3]) is m[3]
     assert _since_last_sent([m[0], None], m[3]) is None and _since_last_sent([m[0]], None) is None
+
+
+def test_a_reset_asked_by_a_frame_the_server_skipped_is_done_by_the_next(service, small_site):
+    """A client that asks for a reset (it was moved, its odometry restarted) must get one even when the server, busy,
+    supersedes that frame with the next: the next frame starts from the database, not from the old track."""
+    import cv2
+
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    intr = Intrinsics(**seq.camera.to_dict())
+    jpg = [cv2.imencode(".jpg", seq.read(i).image)[1].tobytes() for i in range(6)]
+
+    def send(cid, i, **kw):
+        return cl.request_raw(encode(_req(client=cid, seq=i, image=jpg[i], intrinsics=intr, stamp=float(seq.stamps[i]), **kw)),
+                              "w0", 20.0, client_key=cid)
+
+    for i in (1, 2):
+        assert send("rst", i).status.has_pose
+    assert send("rst", 3).status is Status.TRACKING  # the track holds without a reset
+    results = {}
+    busy = threading.Thread(target=lambda: results.update(other=send("other-cold", 0)))  # a cold frame keeps the worker busy
+    busy.start()
+    time.sleep(0.02)
+    t4 = threading.Thread(target=lambda: results.update({4: send("rst", 4, reset=True)}))
+    t4.start()
+    time.sleep(0.005)
+    results[5] = send("rst", 5)
+    t4.join(30)
+    busy.join(30)
+    assert results[4].status is Status.DROPPED and results[4].error is ErrorCode.SUPERSEDED, results[4]
+    assert results[5].status is Status.RELOCALIZED, results[5]  # the reset was done: a relocalization, not tracking

@@ -139,29 +139,34 @@ class _Client:
     # rejected on arrival, before it could be pending (bad intrinsics, an undecodable message), loses its motion.
     skipped: Pose | None = None
     skipped_unknown: bool = False
+    reset_skipped: bool = False  # a skipped frame asked for a reset: the next tracked frame does it
 
     def skip(self, req: FrameRequest) -> None:
-        """The pending ``req`` is superseded: keep its motion for the next frame taken (under the server's lock)."""
+        """The pending ``req`` is superseded: keep its motion (and reset) for the next frame taken (under the server's
+        lock)."""
+        self.reset_skipped |= req.reset
         if req.motion is None:
             self.skipped, self.skipped_unknown = None, True
         elif not self.skipped_unknown:
             m = Pose.from_tum(req.motion.as_tum())
             self.skipped = m if self.skipped is None else self.skipped @ m
 
-    def take_motion(self, req: FrameRequest) -> Pose | None:
-        """The motion from the frame before the skipped ones to ``req``'s, as ``req`` is taken to be tracked (under the
-        server's lock, in arrival order); forgets the skipped ones."""
+    def take(self, req: FrameRequest) -> tuple[Pose | None, bool]:
+        """(motion from the frame before the skipped ones to ``req``'s, reset) as ``req`` is taken to be tracked (under
+        the server's lock, in arrival order): a reset asked by a skipped frame is done by this one. Forgets the skipped."""
+        reset = req.reset or self.reset_skipped
         m = Pose.from_tum(req.motion.as_tum()) if req.motion is not None else None
-        if self.skipped_unknown or req.reset:
+        if self.skipped_unknown or reset:
             m = None
         elif m is not None and self.skipped is not None:
             m = self.skipped @ m
-        self.skipped, self.skipped_unknown = None, False
-        return m
+        self.skipped, self.skipped_unknown, self.reset_skipped = None, False, False
+        return m, reset
 
-    def untake(self, motion: Pose | None) -> None:
+    def untake(self, motion: Pose | None, reset: bool) -> None:
         """A taken frame was not tracked after all (past its deadline, undecodable): its motion goes back in front of
-        whatever was skipped since it was taken (under the server's lock)."""
+        whatever was skipped since it was taken, its reset to the next frame (under the server's lock)."""
+        self.reset_skipped |= reset
         if motion is None:
             self.skipped, self.skipped_unknown = None, True
         elif not self.skipped_unknown:
@@ -399,9 +404,9 @@ class LocalizationServer:
                 query, req, cam, t0, decode_ms = c.pending
                 c.pending, c.queued, c.busy = None, False, True
                 c.last_seq = max(c.last_seq, req.seq)
-                motion = c.take_motion(req)
+                motion, reset = c.take(req)
             try:
-                self._process(c, query, req, cam, t0, decode_ms, motion)
+                self._process(c, query, req, cam, t0, decode_ms, motion, reset)
             except Exception as e:  # noqa: BLE001 - one bad frame must not stop the worker
                 log.exception("frame %s/%s failed", cid, req.seq)
                 self._reject(query, req.client, req.seq, Status.REJECTED, ErrorCode.INTERNAL,
@@ -414,14 +419,15 @@ class LocalizationServer:
                         self.ready.put(cid)
 
     def _process(self, c: _Client, query, req: FrameRequest, cam: Camera, t0: float, decode_ms: float,
-                 motion: Pose | None = None) -> None:
-        """Track one frame of client ``c``; ``motion``: the device's odometry since the last tracked frame."""
+                 motion: Pose | None = None, reset: bool = False) -> None:
+        """Track one frame of client ``c``; ``motion``: the device's odometry since the last tracked frame; ``reset``:
+        asked by this frame or a skipped one before it."""
         t_start = time.perf_counter()
         queue_ms = 1e3 * (t_start - t0)
         tm = {"decode_ms": decode_ms, "queue_ms": queue_ms}
         if req.deadline_ms is not None and queue_ms > req.deadline_ms:
             with self.lock:
-                c.untake(motion)
+                c.untake(motion, reset)
             self._reject(query, req.client, req.seq, Status.DROPPED, ErrorCode.DEADLINE,
                          f"waited {queue_ms:.0f} ms, over the frame's deadline of {req.deadline_ms:.0f} ms",
                          req.stamp, req.stamp_text, tm)
@@ -432,12 +438,12 @@ class LocalizationServer:
             tm["image_ms"] = 1e3 * (time.perf_counter() - t1)
         except _Rejected as e:
             with self.lock:
-                c.untake(motion)
+                c.untake(motion, reset)
             self._reject(query, req.client, req.seq, Status.REJECTED, e.code, e.reason, req.stamp, req.stamp_text)
             return
         if c.tracker is None:
             c.tracker = self.backend.new_tracker()
-        if req.reset:
+        if reset:
             c.tracker.reset()
             c.T_last = None
         prior = Pose.from_tum(req.prior.as_tum()) if req.prior is not None else None
