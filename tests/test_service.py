@@ -315,7 +315,7 @@ def test_the_odometry_of_frames_the_server_skipped_reaches_the_next_tracked_fram
                     motion=PoseMsg.from_tum(m.to_tum()), **kw)
 
     assert cl.request_raw(encode(req(1)), "w0", 20.0, client_key="odo").status.has_pose
-    seen: list = []  # (seq, motion) as the tracker got them
+    seen: list = []  # (stamp, motion) as the tracker got them
     t = srv.clients["odo"].tracker
     real = t.process
 

@@ -37,4 +37,4 @@ def _mutual_nn_torch(d0: np.ndarray, d1: np.ndarray, min_cos: float, device) -> 
         i = sim.argmax(dim=0)
         idx = torch.arange(len(a), device=a.device)
         keep = (i[j] == idx) & (best >= min_cos)
-        return torch.stack([idx[keep], j[keep]], dim=1).cpu().numpy().astype(np.int64)
+        return torch.stack([idx[keep], j[keep]], dim=1).cpu().numpy()
