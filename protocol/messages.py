@@ -175,6 +175,7 @@ class FrameRequest(_Msg):
     - ``image`` + ``encoding``: JPEG or PNG bytes (colour or gray), or raw gray8 of ``intrinsics.width*height`` bytes.
     - ``intrinsics``: of this frame (must match the decoded image's size).
     - ``prior``: optional camera-to-world pose hint (e.g. the client's own last pose when it moves to a new worker).
+      A frame the server skips hands its prior to the next frame it tracks (moved on by the motions sent since).
     - ``motion``: optional relative motion since the previous frame from the device's odometry, as
       ``T_prev_cur`` (the current camera in the previous camera's frame). The server predicts
       ``T_wc = T_wc_prev @ motion`` when it has a previous pose, and after a LOST frame carries that pose on

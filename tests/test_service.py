@@ -410,3 +410,53 @@ def test_a_reset_asked_by_a_frame_the_server_skipped_is_done_by_the_next(service
     busy.join(30)
     assert results[4].status is Status.DROPPED and results[4].error is ErrorCode.SUPERSEDED, results[4]
     assert results[5].status is Status.RELOCALIZED, results[5]  # the reset was done: a relocalization, not tracking
+
+
+def test_a_prior_sent_with_a_frame_the_server_skipped_reaches_the_next_tracked_frame(service, small_site):
+    """A client moving to another worker (or told where it is) sends a prior once: if the busy server supersedes that
+    frame, the next frame it tracks starts from the prior, carried on by the odometry since, not from the database."""
+    import cv2
+
+    from protocol.messages import PoseMsg
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    gt = seq.groundtruth.poses
+    intr = Intrinsics(**seq.camera.to_dict())
+    jpg = [cv2.imencode(".jpg", seq.read(i).image)[1].tobytes() for i in range(8)]
+
+    def send(cid, i, **kw):
+        m = PoseMsg.from_tum((gt[i - 1].inverse() @ gt[i]).to_tum()) if i else None
+        return cl.request_raw(encode(_req(client=cid, seq=i, image=jpg[i], intrinsics=intr, stamp=float(seq.stamps[i]),
+                                          motion=m, **kw)), "w0", 20.0, client_key=cid)
+
+    assert send("pri", 1).status.has_pose
+    seen: list = []
+    t = srv.clients["pri"].tracker
+    real = t.process
+
+    def spy(image, camera, prior, motion, **kw):
+        seen.append((kw.get("stamp"), prior))
+        return real(image, camera, prior, motion, **kw)
+
+    t.process = spy
+    results = {}
+    try:
+        busy = threading.Thread(target=lambda: results.update(other=send("other-cold-2", 0)))
+        busy.start()
+        time.sleep(0.02)
+        th = [threading.Thread(target=lambda i=i, kw=kw: results.update({i: send("pri", i, **kw)}))
+              for i, kw in ((2, {"reset": True, "prior": PoseMsg.from_tum(gt[2].to_tum())}), (3, {}), (4, {}))]
+        for x in th:
+            x.start()
+            time.sleep(0.003)
+        for x in th + [busy]:
+            x.join(30)
+    finally:
+        t.process = real
+    assert [results[i].status for i in (2, 3)] == [Status.DROPPED, Status.DROPPED], results
+    assert len(seen) == 1 and seen[0][0] == float(seq.stamps[4]) and seen[0][1] is not None, seen
+    dt, dr = gt[4].distance_to(seen[0][1])  # frame 2's prior, moved by the motions of frames 3 and 4
+    assert dt < 1e-6 and dr < 1e-4, (dt, dr)
+    assert results[4].status is Status.TRACKING, results[4]  # from the prior: no relocalization

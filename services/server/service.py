@@ -122,6 +122,58 @@ def _finite(x) -> float | None:
     return float(x) if x is not None and np.isfinite(x) else None
 
 
+def _pose(msg) -> Pose | None:
+    return Pose.from_tum(msg.as_tum()) if msg is not None else None
+
+
+@dataclass
+class _Carry:
+    """What a client's frames that were not tracked (superseded, past their deadline, undecodable) hand to the next
+    frame that is. A frame's ``motion`` is since the frame sent before it, so the next tracked frame gets the skipped
+    ones' composed in front of its own (one without any breaks the chain: None then); a skipped reset is done, a
+    skipped prior is used, carried on by the motions after it. A frame rejected on arrival, before it could be pending
+    (bad intrinsics, an undecodable message), hands on nothing. Used under the server's lock, in arrival order."""
+
+    motion: Pose | None = None  # the skipped frames' motions, composed in order
+    unknown: bool = False  # one of them had none
+    reset: bool = False
+    prior: Pose | None = None  # the newest skipped prior, moved on by the motions after it where they are known
+
+    @classmethod
+    def of(cls, motion: Pose | None, reset: bool, prior: Pose | None) -> "_Carry":
+        """One frame's."""
+        return cls(motion, motion is None, reset, prior)
+
+    def then(self, after: "_Carry") -> None:
+        """The frames of ``after`` were skipped after those here."""
+        self.reset |= after.reset
+        if after.unknown:
+            self.motion, self.unknown = None, True
+        elif after.motion is not None and not self.unknown:
+            self.motion = after.motion if self.motion is None else self.motion @ after.motion
+        if after.prior is not None:
+            self.prior = after.prior
+        elif self.prior is not None and after.motion is not None:
+            self.prior = self.prior @ after.motion
+
+    def take(self, req: FrameRequest) -> tuple[Pose | None, bool, Pose | None]:
+        """(motion since the last tracked frame, reset, prior) for ``req``, taken to be tracked; empties the carry."""
+        own = _pose(req.motion)
+        reset = req.reset or self.reset
+        motion = None if self.unknown or reset or own is None else (own if self.motion is None else self.motion @ own)
+        prior = _pose(req.prior)
+        if prior is None and self.prior is not None:
+            prior = self.prior @ own if own is not None else self.prior
+        self.motion, self.unknown, self.reset, self.prior = None, False, False, None
+        return motion, reset, prior
+
+    def untake(self, motion: Pose | None, reset: bool, prior: Pose | None) -> None:
+        """A taken frame was not tracked after all: it goes back in front of the frames skipped since it was taken."""
+        front = _Carry.of(motion, reset, prior)
+        front.then(self)
+        self.motion, self.unknown, self.reset, self.prior = front.motion, front.unknown, front.reset, front.prior
+
+
 @dataclass
 class _Client:
     cid: str
@@ -133,44 +185,7 @@ class _Client:
     last_seq: int = -1
     T_last: Pose | None = None
     frames: int = 0
-    # the device's odometry over frames of this client that were not tracked since the last tracked one (superseded,
-    # past their deadline, undecodable): a frame's ``motion`` is since the frame sent before it, so the next tracked
-    # frame gets these composed in front of its own; a skipped frame without one breaks the chain (None then). A frame
-    # rejected on arrival, before it could be pending (bad intrinsics, an undecodable message), loses its motion.
-    skipped: Pose | None = None
-    skipped_unknown: bool = False
-    reset_skipped: bool = False  # a skipped frame asked for a reset: the next tracked frame does it
-
-    def skip(self, req: FrameRequest) -> None:
-        """The pending ``req`` is superseded: keep its motion (and reset) for the next frame taken (under the server's
-        lock)."""
-        self.reset_skipped |= req.reset
-        if req.motion is None:
-            self.skipped, self.skipped_unknown = None, True
-        elif not self.skipped_unknown:
-            m = Pose.from_tum(req.motion.as_tum())
-            self.skipped = m if self.skipped is None else self.skipped @ m
-
-    def take(self, req: FrameRequest) -> tuple[Pose | None, bool]:
-        """(motion from the frame before the skipped ones to ``req``'s, reset) as ``req`` is taken to be tracked (under
-        the server's lock, in arrival order): a reset asked by a skipped frame is done by this one. Forgets the skipped."""
-        reset = req.reset or self.reset_skipped
-        m = Pose.from_tum(req.motion.as_tum()) if req.motion is not None else None
-        if self.skipped_unknown or reset:
-            m = None
-        elif m is not None and self.skipped is not None:
-            m = self.skipped @ m
-        self.skipped, self.skipped_unknown, self.reset_skipped = None, False, False
-        return m, reset
-
-    def untake(self, motion: Pose | None, reset: bool) -> None:
-        """A taken frame was not tracked after all (past its deadline, undecodable): its motion goes back in front of
-        whatever was skipped since it was taken, its reset to the next frame (under the server's lock)."""
-        self.reset_skipped |= reset
-        if motion is None:
-            self.skipped, self.skipped_unknown = None, True
-        elif not self.skipped_unknown:
-            self.skipped = motion if self.skipped is None else motion @ self.skipped
+    carry: _Carry = field(default_factory=_Carry)  # what frames not tracked hand to the next that is
 
 
 class LocalizationServer:
@@ -373,7 +388,7 @@ class LocalizationServer:
                 else:
                     old = c.pending[:2] if c.pending is not None else None
                     if old is not None:
-                        c.skip(old[1])
+                        c.carry.then(_Carry.of(_pose(old[1].motion), old[1].reset, _pose(old[1].prior)))
                     c.pending = (query, req, cam, t0, decode_ms)
                     if not c.busy and not c.queued:
                         c.queued = True
@@ -404,9 +419,9 @@ class LocalizationServer:
                 query, req, cam, t0, decode_ms = c.pending
                 c.pending, c.queued, c.busy = None, False, True
                 c.last_seq = max(c.last_seq, req.seq)
-                motion, reset = c.take(req)
+                motion, reset, prior = c.carry.take(req)
             try:
-                self._process(c, query, req, cam, t0, decode_ms, motion, reset)
+                self._process(c, query, req, cam, t0, decode_ms, motion, reset, prior)
             except Exception as e:  # noqa: BLE001 - one bad frame must not stop the worker
                 log.exception("frame %s/%s failed", cid, req.seq)
                 self._reject(query, req.client, req.seq, Status.REJECTED, ErrorCode.INTERNAL,
@@ -419,15 +434,15 @@ class LocalizationServer:
                         self.ready.put(cid)
 
     def _process(self, c: _Client, query, req: FrameRequest, cam: Camera, t0: float, decode_ms: float,
-                 motion: Pose | None = None, reset: bool = False) -> None:
-        """Track one frame of client ``c``; ``motion``: the device's odometry since the last tracked frame; ``reset``:
-        asked by this frame or a skipped one before it."""
+                 motion: Pose | None = None, reset: bool = False, prior: Pose | None = None) -> None:
+        """Track one frame of client ``c``; ``motion``, ``reset``, ``prior``: the frame's own with what frames skipped
+        before it handed on (:class:`_Carry`)."""
         t_start = time.perf_counter()
         queue_ms = 1e3 * (t_start - t0)
         tm = {"decode_ms": decode_ms, "queue_ms": queue_ms}
         if req.deadline_ms is not None and queue_ms > req.deadline_ms:
             with self.lock:
-                c.untake(motion, reset)
+                c.carry.untake(motion, reset, prior)
             self._reject(query, req.client, req.seq, Status.DROPPED, ErrorCode.DEADLINE,
                          f"waited {queue_ms:.0f} ms, over the frame's deadline of {req.deadline_ms:.0f} ms",
                          req.stamp, req.stamp_text, tm)
@@ -438,7 +453,7 @@ class LocalizationServer:
             tm["image_ms"] = 1e3 * (time.perf_counter() - t1)
         except _Rejected as e:
             with self.lock:
-                c.untake(motion, reset)
+                c.carry.untake(motion, reset, prior)
             self._reject(query, req.client, req.seq, Status.REJECTED, e.code, e.reason, req.stamp, req.stamp_text)
             return
         if c.tracker is None:
@@ -446,7 +461,6 @@ class LocalizationServer:
         if reset:
             c.tracker.reset()
             c.T_last = None
-        prior = Pose.from_tum(req.prior.as_tum()) if req.prior is not None else None
         extra = {"readout_s": req.readout_s} if req.readout_s else {}  # (backends from before them need not take them)
         if req.near is not None:
             extra["near"] = ((req.near.x, req.near.y, req.near.z), req.near.radius_m)
