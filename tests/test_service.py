@@ -3,6 +3,7 @@
 Request/reply, publication, site info, health, metrics, map bundle download, latest-frame-wins,
 and malformed input (a hypothesis fuzz against the live server)."""
 
+import contextlib
 import math
 import threading
 import time
@@ -125,6 +126,25 @@ def test_info_health_metrics_and_bundle(service, map_dir, tmp_path):
     text = urllib.request.urlopen(f"http://127.0.0.1:{mport}/metrics", timeout=5).read().decode()
     assert 'cristal_frames_total{map="office",server="w0",site="lab",status=' in text
     assert "cristal_stage_seconds_bucket" in text and "cristal_clients" in text
+
+
+@contextlib.contextmanager
+def _seen_by_tracker(srv, client: str):
+    """The (stamp, prior, motion) each frame of ``client`` reaches its real tracker with, while in the block (the
+    tracker is only wrapped to see its arguments)."""
+    seen: list = []
+    t = srv.clients[client].tracker
+    real = t.process
+
+    def spy(image, camera, prior, motion, **kw):
+        seen.append((kw.get("stamp"), prior, motion))
+        return real(image, camera, prior, motion, **kw)
+
+    t.process = spy
+    try:
+        yield seen
+    finally:
+        t.process = real
 
 
 def _req(client="dev-1", seq=1, **kw):
@@ -315,17 +335,8 @@ def test_the_odometry_of_frames_the_server_skipped_reaches_the_next_tracked_fram
                     motion=PoseMsg.from_tum(m.to_tum()), **kw)
 
     assert cl.request_raw(encode(req(1)), "w0", 20.0, client_key="odo").status.has_pose
-    seen: list = []  # (stamp, motion) as the tracker got them
-    t = srv.clients["odo"].tracker
-    real = t.process
-
-    def spy(image, camera, prior, motion, **kw):
-        seen.append((kw.get("stamp"), motion))
-        return real(image, camera, prior, motion, **kw)
-
-    t.process = spy
-    try:
-        results = {}
+    results = {}
+    with _seen_by_tracker(srv, "odo") as seen:
 
         def fire(i, **kw):
             results[i] = cl.request_raw(encode(req(i, **kw)), "w0", 20.0, client_key="odo")
@@ -345,8 +356,6 @@ def test_the_odometry_of_frames_the_server_skipped_reaches_the_next_tracked_fram
             th.join(30)
         fire(9, deadline_ms=0.001)  # taken, but past its deadline
         fire(10)
-    finally:
-        t.process = real
     assert results.pop("other").status is not Status.DROPPED
     st = {i: results[i].status for i in results}
     assert st[9] is Status.DROPPED and results[9].error is ErrorCode.DEADLINE, st
@@ -355,7 +364,7 @@ def test_the_odometry_of_frames_the_server_skipped_reaches_the_next_tracked_fram
     assert tracked[-1] == 10 and len(seen) == len(tracked), (tracked, seen)
     stamp_to_i = {float(seq.stamps[i]): i for i in range(12)}
     prev = 1
-    for stamp, motion in seen:
+    for stamp, _, motion in seen:
         i = stamp_to_i[stamp]
         want = gt[prev].inverse() @ gt[i]  # from the last tracked frame, whatever was skipped between
         assert motion is not None, i
@@ -432,17 +441,8 @@ def test_a_prior_sent_with_a_frame_the_server_skipped_reaches_the_next_tracked_f
                                           motion=m, **kw)), "w0", 20.0, client_key=cid)
 
     assert send("pri", 1).status.has_pose
-    seen: list = []
-    t = srv.clients["pri"].tracker
-    real = t.process
-
-    def spy(image, camera, prior, motion, **kw):
-        seen.append((kw.get("stamp"), prior))
-        return real(image, camera, prior, motion, **kw)
-
-    t.process = spy
     results = {}
-    try:
+    with _seen_by_tracker(srv, "pri") as seen:
         busy = threading.Thread(target=lambda: results.update(other=send("other-cold-2", 0)))
         busy.start()
         time.sleep(0.02)
@@ -453,8 +453,6 @@ def test_a_prior_sent_with_a_frame_the_server_skipped_reaches_the_next_tracked_f
             time.sleep(0.003)
         for x in th + [busy]:
             x.join(30)
-    finally:
-        t.process = real
     assert [results[i].status for i in (2, 3)] == [Status.DROPPED, Status.DROPPED], results
     assert len(seen) == 1 and seen[0][0] == float(seq.stamps[4]) and seen[0][1] is not None, seen
     dt, dr = gt[4].distance_to(seen[0][1])  # frame 2's prior, moved by the motions of frames 3 and 4
