@@ -68,12 +68,21 @@ fi
   >"$OUTDIR/env.log" 2>&1
 cat "$OUTDIR/env.log"
 
+cuda_tests() {  # the tests where CUDA changes the code path, with every "auto" device the GPU (QUICK: XFeat's only)
+  [ -n "${SKIP_TESTS:-}" ] && return
+  if [ -n "${QUICK:-}" ]; then
+    step tests 60 python3 -m pytest -q -rf -p no:cacheprovider tests/test_xfeat.py
+  else
+    step tests 150 python3 -m pytest -q -rf -p no:cacheprovider -n 3 --dist loadfile --timeout 120 \
+      tests/test_render.py tests/test_xfeat.py tests/test_service.py \
+      "tests/test_render_match.py::test_a_relocalizing_frame_s_blur_is_read_from_the_image"
+  fi
+}
+
 # 1. the dense scan and the default site (background) while the tests run
 if [ -f "$HD/seq_00/rgb.txt" ] && [ -f "$VGA/reloc.npz" -o -f "$VGA/seq_00/rgb.txt" ] && [ -f "$HD/scan.ply" ]; then
   echo "sites kept from an earlier run on this machine: $HD, $VGA"
-  [ -z "${SKIP_TESTS:-}" ] && step tests 150 python3 -m pytest -q -rf -p no:cacheprovider -n 3 --dist loadfile --timeout 120 \
-    tests/test_render.py tests/test_xfeat.py tests/test_service.py \
-    "tests/test_render_match.py::test_a_relocalizing_frame_s_blur_is_read_from_the_image"
+  cuda_tests
 else
   J_HD=$(( NPROC > 6 ? NPROC - 4 : 1 ))
   if [ -n "$HDSEQ" ]; then
@@ -88,13 +97,7 @@ else
     step sim_vga 240 cristal -j 4 sim --preset office --lidar-step "$VGA_STEP" --frames "$FRAMES" --out "$VGA" &
     SIMV=$!
   fi
-  if [ -n "${QUICK:-}" ]; then
-    step tests 60 python3 -m pytest -q -rf -p no:cacheprovider tests/test_xfeat.py
-  elif [ -z "${SKIP_TESTS:-}" ]; then
-    step tests 150 python3 -m pytest -q -rf -p no:cacheprovider -n 3 --dist loadfile --timeout 120 \
-      tests/test_render.py tests/test_xfeat.py tests/test_service.py \
-      "tests/test_render_match.py::test_a_relocalizing_frame_s_blur_is_read_from_the_image"
-  fi
+  cuda_tests
   wait $SIM $SIMV
   if [ -n "$HDSEQ" ]; then rm -rf "$HD/seq_00" && cp -r "$HDSEQ" "$HD/seq_00"; fi
 fi
