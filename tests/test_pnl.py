@@ -322,7 +322,8 @@ def test_patches_of_another_map_are_refused(pnl_map, tmp_path):
 
 @pytest.mark.parametrize("mode", ["direct", "direct, retried", "keypoints+alignment", "keypoints"])
 def test_tracking_modes_against_ground_truth(pnl_site, pnl_map, mode):
-    """The default tracks straight from the prediction by patch alignment (no ORB after the first frame); with
+    """The default tracks straight from the prediction by patch alignment (no ORB after the first two frames: the one
+    after a relocalization has no velocity to predict it, and its patch pose is checked by keypoints); with
     direct tracking off, keypoints then alignment; with no alignment (a map without patches, e.g. one
     saved by stella_vslam), keypoints alone under their own looser gates. "direct, retried": 20 patches cannot
     reach the 30-inlier gate, so direct tracking holds only by its retry with twice the patches (a fast turn's
@@ -349,7 +350,7 @@ def test_tracking_modes_against_ground_truth(pnl_site, pnl_map, mode):
     a = compute_ape(seq.groundtruth, traj, "none")
     limit = (0.015, 0.25) if cfg.align else (0.05, 0.6)  # measured: 0.3-0.4 cm / 0.07 deg aligned, 2.9 cm / 0.38 deg keypoints
     assert a.trans_rmse < limit[0] and a.rot_rmse_deg < limit[1], (mode, a.trans_rmse, a.rot_rmse_deg)
-    assert not any(used_orb) if mode.startswith("direct") else all(used_orb)
+    assert not any(used_orb[1:]) if mode.startswith("direct") else all(used_orb)
 
 
 def test_backfill_tracks_back_from_a_later_pose_with_the_light_localizer(pnl_site, pnl_map):
@@ -373,8 +374,8 @@ def test_backfill_tracks_back_from_a_later_pose_with_the_light_localizer(pnl_sit
 def test_a_prediction_too_far_off_for_the_windows_is_found_by_searching_the_patches(pnl_site, pnl_map):
     """Direct tracking's windows converge from a few pixels; a turn that changed speed or direction puts the frame
     further off. Then 60 landmarks' templates are searched for around their predicted projections and PnP on those
-    found gives the pose to align from: no ORB needed, and the pose lands on the truth. Without the search the
-    frame goes the keypoint way."""
+    found gives the pose to align from, and the pose lands on the truth (checked by keypoints here: a prior is not a
+    tracked frame's prediction). Without the search the frame goes the keypoint way."""
     from services.geometry.se3 import Pose
     from services.io.sequence import open_sequence
     from services.localize.pnl import PnlConfig, PnlLocalizer, Status
@@ -388,7 +389,7 @@ def test_a_prediction_too_far_off_for_the_windows_is_found_by_searching_the_patc
         loc = PnlLocalizer.load(pnl_map[0], PnlConfig(search_landmarks=search))
         r = loc.process(f.image, cam, prior=off)
         if search:
-            assert r.status == Status.TRACKING and "search_ms" in r.timings and "features_ms" not in r.timings, r
+            assert r.status == Status.TRACKING and "search_ms" in r.timings, r
             dt, dr = gt.distance_to(r.T_wc)
             assert dt < 0.01 and dr < 0.1, (dt, dr)
         else:
@@ -797,3 +798,36 @@ def test_dim_frames_are_tracked_and_relocalized(pnl_site, pnl_map):
         assert r.T_wc is not None, (i, r.reason)
         dt, dr = g.distance_to(r.T_wc)
         assert dt < 0.01 and dr < 0.15, (i, dt, dr)
+
+
+def test_a_patch_pose_from_an_untracked_prediction_is_checked_by_keypoints(pnl_site, pnl_map):
+    """From a prediction 5-20 cm off that no tracked frame made (a caller's prior here; a pose carried or relocalized,
+    a seed with no velocity), the patches of a few near landmarks can lock onto the wrong edge while the far ones leave
+    the translation-rotation valley open: before the check, this site reported 2 of these 144 frames 14-15 cm off
+    (0.9-1.7 deg). Each pose is now the keypoints' where they disagree (or a relocalization's), never one far off."""
+    from services.geometry.se3 import Pose, rotvec_to_rotmat
+    from services.io.sequence import open_sequence
+    from services.localize.pnl import PnlConfig, PnlLocalizer
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    loc = PnlLocalizer.load(pnl_map[0], PnlConfig())
+    rng = np.random.default_rng(0)
+    reported, off = 0, []
+    for dist in (0.05, 0.1, 0.2):
+        for i in range(len(seq)):
+            f = seq.read(i)
+            gt = seq.groundtruth_pose(f.stamp)
+            for _ in range(6):
+                d, a = rng.standard_normal(3), rng.standard_normal(3)
+                prior = Pose(rotvec_to_rotmat(a / np.linalg.norm(a) * np.radians(10 * dist)) @ gt.R,
+                             gt.t + dist * d / np.linalg.norm(d))
+                loc.reset()
+                r = loc.process(f.image, cam, prior=prior, stamp=float(f.stamp))
+                if r.T_wc is not None:
+                    reported += 1
+                    dt, dr = gt.distance_to(r.T_wc)
+                    if dt > 0.03 or dr > 0.5:
+                        off.append((dist, i, round(100 * dt, 1), round(dr, 2)))
+    print(f"{reported} of {3 * 6 * len(seq)} reported, off: {off}")
+    assert reported >= 0.9 * 3 * 6 * len(seq) and not off, (reported, off)
