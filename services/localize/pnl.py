@@ -489,13 +489,13 @@ class PnlLocalizer:
     def _checked(self, fr: _Frame, r, pred: Pose, tm: dict):
         """A pose aligned to the landmarks' patches (directly, or from where searching them put the camera) from a
         prediction that is not a tracked frame's or a seed's with its velocity (a caller's prior, a pose carried or
-        relocalized, a seed with no velocity), checked by the keypoints tracked from that prediction: their pose where the two disagree (beyond
-        ``confirm_m`` / ``confirm_deg``), or a relocalization's where they give no pose to report; where neither does,
-        the pose is kept but ``fr.unchecked`` (not reported: :meth:`process`). From a prediction 3-20
-        cm off, the patches of a few near landmarks can lock onto the wrong edge while the far ones fit a pose anywhere
-        along the translation-rotation valley they leave open, and a search can find a wrong place: the tests' site
-        reported poses 11-31 cm off at 0.6-0.8 cm 1-sigma where the keypoints came within 0.5 cm, the office walk one
-        72 cm off (benchmarks/off_prediction.py, RESULTS stop 43)."""
+        relocalized, a seed with no velocity), checked by the keypoints tracked from that prediction: their pose where
+        the two disagree (beyond ``confirm_m`` / ``confirm_deg``), or a relocalization's where they give no pose to
+        report; where neither does, the pose is kept but ``fr.unchecked`` (not reported: :meth:`process`). From a
+        prediction 3-20 cm off, the patches of a few near landmarks can lock onto the wrong edge while the far ones fit
+        a pose anywhere along the translation-rotation valley they leave open, and a search can find a wrong place: the
+        tests' site reported poses 11-31 cm off at 0.6-0.8 cm 1-sigma where the keypoints came within 0.5 cm, the
+        office walk one 72 cm off (benchmarks/off_prediction.py, RESULTS stop 43)."""
         T = Pose(r[0].T, -r[0].T @ r[1])
         for check in (lambda: self._track(fr, pred, self.cfg.coarse_radius_px, tm), lambda: self._relocalize(fr, tm)):
             c = check()  # the keypoints tracked from the prediction; where they give no pose to report, a relocalization
