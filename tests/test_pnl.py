@@ -804,7 +804,7 @@ def test_a_patch_pose_from_an_untracked_prediction_is_checked_by_keypoints(pnl_s
     """From a prediction 5-20 cm off that no tracked frame made (a caller's prior here; a pose carried or relocalized,
     a seed with no velocity), the patches of a few near landmarks can lock onto the wrong edge while the far ones leave
     the translation-rotation valley open: before the check, this site reported 2 of these 144 frames 14-15 cm off
-    (0.9-1.7 deg). Each pose is now the keypoints' where they disagree (or a relocalization's), never one far off."""
+    (0.9-1.7 deg). Now each is kept where the keypoints agree, else a relocalization decides: none far off."""
     from services.geometry.se3 import Pose, rotvec_to_rotmat
     from services.io.sequence import open_sequence
     from services.localize.pnl import PnlConfig, PnlLocalizer
