@@ -492,11 +492,12 @@ class PnlLocalizer:
         relocalized, a seed with no velocity), checked: kept where the keypoints tracked from that prediction agree
         (within ``confirm_m`` / ``confirm_deg``), else decided by a relocalization (its pose where it disagrees: tracked
         from a prediction 20 cm off, keypoints too can hold a pose 22 cm off, office seed 8 frame 295); where neither
-        gives a pose, kept but ``fr.unchecked`` (not reported: :meth:`process`). From a
-        prediction 3-20 cm off, the patches of a few near landmarks can lock onto the wrong edge while the far ones fit
-        a pose anywhere along the translation-rotation valley they leave open, and a search can find a wrong place: the
-        tests' site reported poses 11-31 cm off at 0.6-0.8 cm 1-sigma where the keypoints came within 0.5 cm, the
-        office walk one 72 cm off (benchmarks/off_prediction.py, RESULTS stop 43)."""
+        gives a pose, kept but ``fr.unchecked`` (not reported: :meth:`process`).
+
+        From a prediction 3-20 cm off, the patches of a few near landmarks can lock onto the wrong edge while the far
+        ones fit a pose anywhere along the translation-rotation valley they leave open, and a search can find a wrong
+        place: the tests' site reported poses 11-31 cm off at 0.6-0.8 cm 1-sigma where the keypoints came within 0.5 cm,
+        the office walk one 72 cm off (benchmarks/off_prediction.py, RESULTS stop 43)."""
         T = Pose(r[0].T, -r[0].T @ r[1])
 
         def agrees(c) -> bool:
