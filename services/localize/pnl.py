@@ -362,6 +362,7 @@ class _Frame:
     reason: str | None = None  # why this frame has no pose, when it has none
     spare: tuple | None = None  # the most certain aligned solution tracking found that was not good (PnlLocalizer._spare)
     unchecked: bool = False  # its pose came from an untracked prediction and nothing could check it (PnlLocalizer._checked)
+    relocalized: bool = False  # ... or a relocalization replaced that pose (PnlLocalizer._checked)
     exposure_fraction: float = 0.3  # the exposure over the interval since the last frame (motion blur from the velocity)
     near_rows: np.ndarray | None = None  # relocalization rows of the landmarks within a caller's hint (None: no hint)
     near: tuple[np.ndarray, float] | None = None  # that hint now: (position, how far the camera can be from it)
@@ -492,7 +493,8 @@ class PnlLocalizer:
         relocalized, a seed with no velocity), checked: kept where the keypoints tracked from that prediction agree
         (within ``confirm_m`` / ``confirm_deg``), else decided by a relocalization (its pose where it disagrees: tracked
         from a prediction 20 cm off, keypoints too can hold a pose 22 cm off, office seed 8 frame 295); where neither
-        gives a pose, kept but ``fr.unchecked`` (not reported: :meth:`process`).
+        gives a pose, kept but ``fr.unchecked`` (not reported: :meth:`process`). A relocalization's pose sets
+        ``fr.relocalized``: the frame is then reported as relocalized, and no velocity is taken from the jump to it.
 
         From a prediction 3-20 cm off, the patches of a few near landmarks can lock onto the wrong edge while the far
         ones fit a pose anywhere along the translation-rotation valley they leave open, and a search can find a wrong
@@ -509,9 +511,11 @@ class PnlLocalizer:
             return r
         c = self._relocalize(fr, tm)  # no prediction at all decides
         if self._good(c, fr):
-            if not agrees(c):
-                log.debug("a patch pose from an untracked prediction disagrees with a relocalization: not kept")
-            return r if agrees(c) else c
+            if agrees(c):
+                return r
+            log.debug("a patch pose from an untracked prediction disagrees with a relocalization: not kept")
+            fr.relocalized = True
+            return c
         fr.reason, fr.unchecked = None, True  # (the relocalization's reason: the frame keeps its pose, unreported)
         return r
 
@@ -1119,6 +1123,9 @@ class PnlLocalizer:
                         r = self._direct_retry(fr, found, tm, spare=True)
                 if r is not None and not (self._tracked and self._vel is not None and prior is None):
                     r = self._checked(fr, r, pred, tm)
+                    if fr.relocalized:
+                        status = Status.RELOCALIZED
+                        self.relocalizations += 1
             if r is None:
                 r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
             if prior is None and not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
