@@ -334,6 +334,9 @@ class _Frame:
     stamp: float | None = None  # capture time (s), when the caller gives it
 
 
+CHI2_6DOF_1PCT = 16.81  # two pose estimates disagree beyond this chi-square (6 dof, 1 %)
+
+
 def _fuse(a: PnpResult, b: PnpResult) -> PnpResult:
     """Two estimates of one pose combined by their information (covariances of right perturbations, as
     PnpResult keeps them), ``a``'s inliers and error kept. Where they disagree beyond their covariances
@@ -346,12 +349,12 @@ def _fuse(a: PnpResult, b: PnpResult) -> PnpResult:
     try:
         Ia, Ib = np.linalg.inv(a.cov), np.linalg.inv(b.cov)
         C = np.linalg.inv(Ia + Ib)
-        chi2 = float(d @ np.linalg.solve(a.cov + b.cov, d))
+        chi2 = _chi2(a, b, d)
     except np.linalg.LinAlgError:
         return a
     x = C @ Ib @ d
     T = Pose(Ra @ Pose.from_rotvec_t(x[3:], np.zeros(3)).R, a.T_wc.t + Ra @ x[:3])
-    if chi2 > 16.81:
+    if chi2 > CHI2_6DOF_1PCT:
         C = C + np.outer(d, d)
     return dataclasses.replace(a, T_wc=T, cov=C)
 
@@ -362,13 +365,17 @@ def _difference(a: PnpResult, b: PnpResult) -> np.ndarray:
     return np.concatenate([Ra.T @ (b.T_wc.t - a.T_wc.t), Pose(Ra.T @ b.T_wc.R, np.zeros(3)).rotvec()])
 
 
+def _chi2(a: PnpResult, b: PnpResult, d: np.ndarray) -> float:
+    """Chi-square of the difference ``d`` (``_difference(a, b)``) under both covariances."""
+    return float(d @ np.linalg.solve(a.cov + b.cov, d))
+
+
 def _agree(a: PnpResult, b: PnpResult) -> bool:
-    """Whether two estimates of one pose agree within their covariances (chi-square, 6 dof, 1 %, as ``_fuse``)."""
+    """Whether two estimates of one pose agree within their covariances (the test ``_fuse`` makes)."""
     if a.cov is None or b.cov is None:
         return True
-    d = _difference(a, b)
     try:
-        return float(d @ np.linalg.solve(a.cov + b.cov, d)) <= 16.81
+        return _chi2(a, b, _difference(a, b)) <= CHI2_6DOF_1PCT
     except np.linalg.LinAlgError:
         return True
 
