@@ -16,7 +16,6 @@ is where the uncertainty model under-predicts (benchmarks/RESULTS.md, stop 45: ~
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -25,7 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
+from services.eval.ape import compute_ape  # noqa: E402
 from services.geometry.blur import blur_length_px  # noqa: E402
+from services.io.frame_log import frame_log_path, read_frame_log  # noqa: E402
 from services.io.sequence import open_sequence  # noqa: E402
 from services.io.trajectory import read_tum  # noqa: E402
 
@@ -34,24 +35,23 @@ BINS = ((0, 3), (3, 6), (6, 10), (10, 15), (15, 20), (20, 1000))
 
 def frames_of(site: Path, walks: Path, method: str) -> list[tuple[float, float, float, float, float]]:
     """(blur px at 640, translation error cm, rotation error deg, sigma cm, sigma deg) per reported frame."""
-    traj, table = walks / f"{site.name}-{method}.txt", walks / f"{site.name}-{method}.frames.csv"
-    if not (traj.exists() and table.exists() and (site / "site.json").exists()):
+    traj = walks / f"{site.name}-{method}.txt"
+    if not (traj.exists() and frame_log_path(traj).exists() and (site / "site.json").exists()):
         return []
     cfg = json.loads((site / "site.json").read_text())["config"]
     exposure_frames = cfg["sensor"]["exposure_time_s"] * cfg["fps"]  # exposure as a fraction of the frame interval
     seq = open_sequence(site / "seq_00")
-    poses = read_tum(traj).as_dict()
-    rows = list(csv.DictReader(table.open()))
-    stamps = seq.groundtruth.stamps
+    ape = compute_ape(seq.groundtruth, read_tum(traj), "none", strict=False)
+    records = read_frame_log(frame_log_path(traj))
+    index = {s: i for i, s in enumerate(seq.groundtruth.stamps)}
     out = []
-    for i in range(1, min(len(stamps), len(rows))):
-        s = stamps[i]
-        if s not in poses or not rows[i]["sigma_deg"]:
+    for s, te, re in zip(ape.stamps, ape.trans_err, ape.rot_err_deg):
+        i, rec = index[s], records.get(s)
+        if i == 0 or rec is None or not (np.isfinite(rec.sigma_m) and np.isfinite(rec.sigma_deg)):
             continue
-        gt, before = seq.groundtruth_pose(s), seq.groundtruth_pose(stamps[i - 1])
+        before, gt = seq.groundtruth.poses[i - 1], seq.groundtruth.poses[i]
         blur = blur_length_px(seq.camera, before, gt) * exposure_frames * 640.0 / seq.camera.width
-        dt, dr = poses[s].distance_to(gt)
-        out.append((blur, 100 * dt, dr, float(rows[i]["sigma_cm"]), float(rows[i]["sigma_deg"])))
+        out.append((blur, 100 * te, re, 100 * rec.sigma_m, rec.sigma_deg))
     return out
 
 
