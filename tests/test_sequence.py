@@ -173,3 +173,44 @@ def test_odometry_logged_at_its_own_rate_is_interpolated_at_the_frames(tmp_path)
     write_tum(tmp_path / "bad.txt", Trajectory(["2.0", "1.0"], [Pose.identity(), Pose.identity()]))
     with pytest.raises(TrajectoryError, match="must increase"):
         read_odometry(tmp_path / "bad.txt", frames)
+
+
+@pytest.mark.parametrize("unit,per_second", [("seconds", 1), ("milliseconds", 10**3), ("microseconds", 10**6),
+                                             ("nanoseconds", 10**9)])
+def test_timestamps_counted_in_a_finer_unit_are_read_as_seconds(tmp_path, caplog, unit, per_second):
+    """A recorder that names frames by nanoseconds (a ROS 2 bag exported frame by frame) or milliseconds: the text is
+    kept exactly, but the capture times the localizers and the odometry's clock get are seconds (else every frame
+    looks like the first after a long gap, and tracking runs without its motion model)."""
+    from services.io.trajectory import read_odometry, relative_motions
+
+    t0 = 1_700_000_000 * per_second  # an epoch stamp, as recorders write them
+    step = per_second // 30 if per_second > 1 else None
+    stamps = ([str(t0 + k * step) for k in range(6)] if step else [f"{1_700_000_000 + k / 30:.6f}" for k in range(6)])
+    w = SequenceWriter(tmp_path / "seq", CAM)
+    for s, img in zip(stamps, _frames(len(stamps))):
+        w.add(s, img)
+    w.close()
+    with caplog.at_level("WARNING"):
+        seq = open_sequence(tmp_path / "seq")
+    assert seq.stamps == stamps and seq.stamp_unit == unit
+    frame_dt = step / per_second if step else 1 / 30  # (33 ms when counted in whole milliseconds)
+    assert np.allclose(np.diff([seq.seconds(s) for s in stamps]), frame_dt, atol=1e-6)
+    assert (unit in caplog.text) == (unit != "seconds"), caplog.text
+    # a device's odometry on the same clock, logged at 100 Hz between the frames (walking 1 m/s): interpolated at the
+    # frames' times
+    odo_t = [t0 + k * (per_second // 100) for k in range(-2, 30)] if step else [1_700_000_000 + k / 100 for k in range(-2, 30)]
+    write_tum(tmp_path / "vio.txt", Trajectory([str(t) if step else f"{t:.6f}" for t in odo_t],
+                                               [Pose.from_rotvec_t([0, 0, 0], [0.01 * k, 0, 0]) for k in range(32)]))
+    motions = relative_motions(read_odometry(tmp_path / "vio.txt", stamps), stamps)
+    assert all(m is not None for m in motions[1:]), motions
+    assert all(abs(m.t[0] - frame_dt) < 1e-5 for m in motions[1:]), [m.t for m in motions[1:]]
+
+
+def test_frames_out_of_time_order_are_warned_about(tmp_path, caplog):
+    w = SequenceWriter(tmp_path / "seq", CAM)
+    for s, img in zip(["1.000000", "1.066667", "1.033333"], _frames(3)):
+        w.add(s, img)
+    w.close()
+    with caplog.at_level("WARNING"):
+        seq = open_sequence(tmp_path / "seq")
+    assert len(seq) == 3 and "do not increase" in caplog.text and "line" in caplog.text

@@ -91,6 +91,17 @@ def _frame_bytes(seq, i: int, image: np.ndarray):
     return encode_image(image)
 
 
+def _seconds(seq, stamp: str) -> float | None:
+    """A frame's capture time in seconds: a Sequence knows its stamps' unit (a recorder may count nanoseconds,
+    services.io.stamps); a live source stamps in seconds."""
+    if hasattr(seq, "seconds"):
+        return seq.seconds(stamp)
+    try:
+        return float(stamp)
+    except ValueError:
+        return None
+
+
 def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallback | None, out: str | Path | None = None,
                     frames: int | None = None, fps: float = 0.0, deadline_ms: float | None = None,
                     on_frame=None, odometry: Trajectory | None = None,
@@ -129,10 +140,8 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
             T: Pose | None = None
             source, status, server, rtt = "-", "none", "-", float("nan")
             rep = None
-            try:
-                stamp_f = float(frame.stamp)
-            except ValueError:
-                stamp_f = float(i)
+            stamp_f = _seconds(seq, frame.stamp)
+            stamp_f = float(i) if stamp_f is None else stamp_f
             motion, unsent = _since_last_sent(unsent, motions[i]), []
             if client is not None:
                 data, enc = _frame_bytes(seq, i, frame.image)

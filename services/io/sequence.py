@@ -25,6 +25,7 @@ import numpy as np
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write_bytes, atomic_write_text
+from services.io.stamps import seconds_per_unit
 from services.io.trajectory import Trajectory, read_tum, write_tum
 
 __all__ = ["Frame", "Sequence", "SequenceError", "SequenceWriter", "open_sequence", "VIDEO_SUFFIXES"]
@@ -56,6 +57,8 @@ class Sequence:
         self.files = files
         self.groundtruth = groundtruth
         self.video = video
+        # the capture time's unit (services.io.stamps): seconds, or what a recorder that counts finer used
+        self.seconds_per_unit, self.stamp_unit = seconds_per_unit(stamps, f"{root if video is None else video}: timestamps")
 
     @property
     def name(self) -> str:
@@ -63,6 +66,13 @@ class Sequence:
 
     def __len__(self) -> int:
         return len(self.stamps)
+
+    def seconds(self, stamp: str) -> float | None:
+        """A frame's capture time in seconds (its timestamp text in the sequence's unit), None if not a number."""
+        try:
+            return float(stamp) * self.seconds_per_unit
+        except ValueError:
+            return None
 
     def read(self, i: int) -> Frame:
         if self.files is None:
@@ -114,7 +124,7 @@ class Sequence:
 def _read_rgb_txt(path: Path) -> list[tuple[str, str]]:
     if not path.exists():
         raise SequenceError(f"{path}: missing (a sequence folder needs rgb.txt)")
-    entries = []
+    entries, unordered = [], []
     for n, line in enumerate(path.read_text().splitlines(), 1):
         line = line.split("#", 1)[0].strip()
         if not line:
@@ -126,9 +136,15 @@ def _read_rgb_txt(path: Path) -> list[tuple[str, str]]:
             float(parts[0])
         except ValueError:
             raise SequenceError(f"{path}:{n}: timestamp {parts[0]!r} is not a number") from None
+        if entries and float(parts[0]) <= float(entries[-1][0]):
+            unordered.append((n, parts[0], entries[-1][0]))
         entries.append((parts[0], parts[1]))
     if not entries:
         raise SequenceError(f"{path}: lists no frames")
+    if unordered:  # tracking takes frames as they come: a motion model cannot run backwards, a trajectory file repeats
+        n, now, before = unordered[0]
+        log.warning("%s: %d timestamp(s) do not increase, the first on line %d (%s after %s): frames are localized in "
+                    "file order; sort the file by time", path, len(unordered), n, now, before)
     return entries
 
 

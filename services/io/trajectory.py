@@ -14,6 +14,7 @@ import numpy as np
 
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write_text
+from services.io.stamps import seconds_per_unit
 
 __all__ = ["Trajectory", "TrajectoryError", "read_tum", "write_tum", "format_tum_line", "relative_motions", "read_odometry",
            "ODOMETRY_AXES"]
@@ -131,6 +132,7 @@ def read_odometry(path: str | Path, stamps: list[str], max_gap_s: float = 0.2, a
     t = np.array([float(s) for s in odo.stamps])  # read_tum checked they are numbers
     if len(t) > 1 and np.any(np.diff(t) <= 0):
         raise TrajectoryError(f"{path}: timestamps must increase (line order), as a device logs them")
+    scale, _ = seconds_per_unit(stamps)  # the frames' clock's unit (services.io.stamps): max_gap_s is in seconds
     out = Trajectory()
     for s in stamps:
         if s in exact:
@@ -141,7 +143,7 @@ def read_odometry(path: str | Path, stamps: list[str], max_gap_s: float = 0.2, a
         except ValueError:
             continue
         k = int(np.searchsorted(t, f))
-        if 0 < k < len(t) and t[k] - t[k - 1] <= max_gap_s:
+        if 0 < k < len(t) and (t[k] - t[k - 1]) * scale <= max_gap_s:
             out.append(s, odo.poses[k - 1].interpolate(odo.poses[k], (f - t[k - 1]) / (t[k] - t[k - 1])))
     if not len(out):
         span = f"{odo.stamps[0]}..{odo.stamps[-1]}" if len(odo) else "no poses"

@@ -148,7 +148,6 @@ def run_calibrate(args) -> int:
     from services.io.sequence import open_sequence
     from services.localize.calibrate import calibrate
     from services.localize.render_match import RenderMatchTracker, RMConfig
-    from services.localize.runner import _seconds
     from services.log import progress
     from services.relocalize.database import RelocDB
     from services.render.renderer import Renderer
@@ -171,7 +170,7 @@ def run_calibrate(args) -> int:
                 break
             if f.image is None:  # missing or broken file (logged)
                 continue
-            r = tr.process(f.image, camera, stamp=_seconds(f.stamp))
+            r = tr.process(f.image, camera, stamp=seq.seconds(f.stamp))
             if r.T_wc is not None:
                 k += 1
                 if k % args.every == 1 or args.every == 1:

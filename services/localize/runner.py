@@ -11,13 +11,6 @@ __all__ = ["localize_sequence", "localize_and_report"]
 log = logging.getLogger(__name__)
 
 
-def _seconds(stamp: str) -> float | None:
-    try:
-        return float(stamp)
-    except ValueError:
-        return None
-
-
 def _png(image) -> bytes:
     import cv2
 
@@ -49,7 +42,7 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     why: dict[str, int] = {}
     motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else None
     # the capture time: constant velocity and blur (R&M), the odometry's clock
-    stamps = [_seconds(s) if (stamped or motions is not None) else None for s in seq.stamps[:n]]
+    stamps = [seq.seconds(s) if (stamped or motions is not None) else None for s in seq.stamps[:n]]
     poses: list = [None] * n
     kept: dict[int, bytes] = {}  # a video's frames the backward pass needs (LOST ones and those around them), as PNG
     prev = None
