@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from services.io.atomic import atomic_write_bytes
+from services.io.stamps import seconds_per_unit
 from services.io.trajectory import Trajectory
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -108,7 +109,8 @@ def plot_trajectory_topdown(gt: Trajectory, est: Trajectory, out_png: str | Path
 
 def plot_errors(result: "ApeResult", out_png: str | Path, title: str | None = None) -> Path:
     """Translation (cm) and rotation (deg) error over time with RMSE lines; frames without a pose marked."""
-    t_all = np.concatenate([result.times, result.lost_times])
+    scale, _ = seconds_per_unit(sorted(result.stamps + result.lost_stamps, key=float))  # stamps in ns: the axis in s
+    t_all = np.concatenate([result.times, result.lost_times]) * scale
     t0 = float(t_all.min()) if len(t_all) else 0.0
     # one series over all ground-truth frames, NaN (a gap) where a frame got no pose
     order = np.argsort(t_all, kind="stable")
@@ -123,7 +125,7 @@ def plot_errors(result: "ApeResult", out_png: str | Path, title: str | None = No
         ax.plot(tt, y, "-", color=EST_COLOR, lw=1.0, marker=".", ms=2.5, label=name)
         ax.axhline(rmse, color="k", ls="--", lw=1.0, label=f"RMSE {rmse:.3g} {unit}")
         if len(result.lost_times):
-            ax.vlines(result.lost_times - t0, 0, 1, transform=ax.get_xaxis_transform(), color=LOST_COLOR,
+            ax.vlines(result.lost_times * scale - t0, 0, 1, transform=ax.get_xaxis_transform(), color=LOST_COLOR,
                       alpha=0.35, lw=1.0, label=f"no pose ({len(result.lost_times)} frames)")
         ax.set_ylabel(f"{name} ({unit})")
         ax.set_ylim(bottom=0)
