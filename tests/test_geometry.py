@@ -86,12 +86,20 @@ def test_camera_scaled_keeps_pixel_centres():
 @pytest.mark.parametrize("bad,msg", [
     ({"fx": 0}, "focal"), ({"fx": -5}, "focal"), ({"fy": float("nan")}, "finite"), ({"width": 0}, "width"),
     ({"height": 2.5}, "height"), ({"cx": 1e6}, "principal"), ({"distortion": [0, 0, float("inf"), 0, 0]}, "distortion"),
+    ({"distortion": [0.1, 0, 0, 0, 0, 0.02, 0, 0]}, "further terms zero"),  # a rational model: not ours
 ])
 def test_camera_rejects_absurd_intrinsics(bad, msg):
     d = {"width": 640, "height": 480, "fx": 500, "fy": 500, "cx": 320, "cy": 240, "distortion": [0, 0, 0, 0, 0]}
     d.update(bad)
     with pytest.raises(CameraError, match=msg):
         Camera.from_dict(d)
+
+
+def test_camera_takes_opencvs_longer_distortion_lists_when_their_extra_terms_are_zero():
+    """A ROS camera_info of the rational_polynomial model lists 8 coefficients; with k4-k6 zero it is the 5-term model."""
+    d = {"width": 640, "height": 480, "fx": 500, "fy": 500, "cx": 320, "cy": 240}
+    assert Camera.from_dict({**d, "distortion": [0.1, -0.02, 0.001, 0, 0.003, 0, 0, 0]}).distortion == (0.1, -0.02, 0.001, 0, 0.003)
+    assert Camera.from_dict({**d, "distortion": [0.1, -0.02]}).distortion == (0.1, -0.02, 0, 0, 0)
 
 
 def test_camera_json_roundtrip(tmp_path):

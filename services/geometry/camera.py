@@ -35,6 +35,10 @@ class Camera:
         dist = tuple(float(d) for d in (self.distortion or ()))
         if len(dist) < 5:
             dist = dist + (0.0,) * (5 - len(dist))
+        elif len(dist) in (8, 12, 14) and not any(dist[5:]):
+            # OpenCV's longer models (rational k4-k6, thin prism, tilt: ROS' rational_polynomial camera_info has 8) with
+            # those terms zero are the 5-term model; non-zero ones are not (validate says so)
+            dist = dist[:5]
         object.__setattr__(self, "distortion", dist)
         self.validate()
 
@@ -55,7 +59,8 @@ class Camera:
         if not (-self.width <= self.cx <= 2 * self.width and -self.height <= self.cy <= 2 * self.height):
             raise CameraError(f"principal point ({self.cx}, {self.cy}) is far outside the {self.width}x{self.height} image")
         if len(self.distortion) != 5 or not all(math.isfinite(d) for d in self.distortion):
-            raise CameraError(f"distortion must be 5 finite numbers [k1, k2, p1, p2, k3], got {self.distortion!r}")
+            raise CameraError(f"distortion must be 5 finite numbers [k1, k2, p1, p2, k3] (OpenCV's model; its longer "
+                              f"ones only with their further terms zero), got {self.distortion!r}")
 
     # ---- I/O -----------------------------------------------------------
     @classmethod
