@@ -80,6 +80,20 @@ def test_sequence_errors_name_the_problem(tmp_path):
     cv2.imwrite(str(d / "rgb" / "a.png"), np.zeros((10, 10, 3), np.uint8))
     with pytest.raises(SequenceError, match="camera.json says 64x48"):
         open_sequence(d).read(0)
+    (d / "rgb.txt").unlink()  # no rgb.txt: images named otherwise than by timestamp cannot be put in order
+    with pytest.raises(SequenceError, match="not named by timestamp"):
+        open_sequence(d)
+
+
+def test_a_folder_without_rgb_txt_is_read_in_the_order_its_image_names_give(tmp_path):
+    w = SequenceWriter(tmp_path / "seq", CAM)
+    stamps = ["9.5", "10.25", "100.0"]  # (text order is not time order)
+    for s, img in zip(stamps, _frames(3)):
+        w.add(s, img)
+    w.close()
+    (tmp_path / "seq" / "rgb.txt").unlink()
+    seq = open_sequence(tmp_path / "seq")
+    assert seq.stamps == stamps and seq.read(2).image.shape == (48, 64, 3)
 
 
 def test_a_recording_with_broken_frames_is_read_past_them(tmp_path):

@@ -3,7 +3,8 @@
 Folder layout (``docs/CONVENTIONS.md``)::
 
     <sequence>/rgb/<timestamp>.jpg|png
-    <sequence>/rgb.txt           "timestamp rgb/<file>" per line, '#' comments
+    <sequence>/rgb.txt           "timestamp rgb/<file>" per line, '#' comments (without it: rgb/'s images
+                                 named by timestamp, in time order)
     <sequence>/camera.json       intrinsics
     <sequence>/groundtruth.txt   optional TUM camera-to-world poses
 
@@ -121,9 +122,31 @@ class Sequence:
         return self.groundtruth.as_dict().get(stamp)
 
 
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
+
+
+def _listed_by_name(path: Path) -> list[tuple[str, str]]:
+    """Without rgb.txt: the images of rgb/ named by their timestamp (``rgb/<timestamp>.jpg|png``, as the layout names
+    them), in time order; a SequenceError when there is no rgb/ or its images are named otherwise."""
+    folder = path.parent / "rgb"
+    images = sorted(f for f in folder.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES) if folder.is_dir() else []
+    if not images:
+        raise SequenceError(f"{path}: missing (a sequence folder needs rgb.txt, or rgb/ with images named by timestamp)")
+    stamped = []
+    for f in images:
+        try:
+            stamped.append((float(f.stem), f.stem, f"rgb/{f.name}"))
+        except ValueError:
+            raise SequenceError(f"{path}: missing, and the images of rgb/ are not named by timestamp (e.g. {f.name}): "
+                                "write rgb.txt, lines 'timestamp rgb/<file>'") from None
+    stamped.sort(key=lambda x: x[0])
+    log.info("%s: no rgb.txt; the %d images of rgb/ taken in timestamp order (their names)", path.parent, len(stamped))
+    return [(stem, rel) for _, stem, rel in stamped]
+
+
 def _read_rgb_txt(path: Path) -> list[tuple[str, str]]:
     if not path.exists():
-        raise SequenceError(f"{path}: missing (a sequence folder needs rgb.txt)")
+        return _listed_by_name(path)
     entries, unordered = [], []
     for n, line in enumerate(path.read_text().splitlines(), 1):
         line = line.split("#", 1)[0].strip()
