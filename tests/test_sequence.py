@@ -220,6 +220,19 @@ def test_timestamps_counted_in_a_finer_unit_are_read_as_seconds(tmp_path, caplog
     assert all(abs(m.t[0] - frame_dt) < 1e-5 for m in motions[1:]), [m.t for m in motions[1:]]
 
 
+def test_frames_numbered_instead_of_timed_are_taken_at_a_video_rate(tmp_path, caplog):
+    """KITTI-style names, 000000.png, 000001.png...: read as seconds they would be a second apart (no motion model)."""
+    w = SequenceWriter(tmp_path / "seq", CAM, ext=".png")
+    stamps = [f"{k:06d}" for k in range(5)]
+    for s, img in zip(stamps, _frames(5)):
+        w.add(s, img)
+    w.close()
+    with caplog.at_level("WARNING"):
+        seq = open_sequence(tmp_path / "seq")
+    assert seq.stamp_unit == "frames" and "frame numbers" in caplog.text
+    assert np.allclose(np.diff([seq.seconds(s) for s in stamps]), 1 / 30)
+
+
 def test_frames_out_of_time_order_are_warned_about(tmp_path, caplog):
     w = SequenceWriter(tmp_path / "seq", CAM)
     for s, img in zip(["1.000000", "1.066667", "1.033333"], _frames(3)):
