@@ -95,6 +95,7 @@ def test_request_reply_and_publication(service, small_site):
         g = np.ascontiguousarray(seq.read(4).image.mean(axis=2).astype(np.uint8))
         rep = cl.localize(g.tobytes(), seq.camera, encoding=ImageEncoding.GRAY8)
         assert rep.status.has_pose, rep
+        assert rep.stamp > 0  # sent without a stamp: the call's time, so the server's motion model has a clock
         half = seq.camera.scaled(0.5) if hasattr(seq.camera, "scaled") else None
         small = __import__("cv2").resize(seq.read(5).image, (half.width, half.height))
         rep = cl.localize(small, half)

@@ -141,18 +141,24 @@ class LocalizationClient:
             return new
 
     # ---- frames --------------------------------------------------------------------
-    def localize(self, image: bytes | np.ndarray, camera: Camera, stamp: float = 0.0, stamp_text: str | None = None,
+    def localize(self, image: bytes | np.ndarray, camera: Camera, stamp: float | None = None, stamp_text: str | None = None,
                  prior: Pose | None = None, motion: Pose | None = None, reset: bool = False,
                  encoding: ImageEncoding | None = None, deadline_ms: float | None = None,
                  exposure_s: float | None = None, readout_s: float | None = None,
                  near: tuple[tuple[float, float, float], float] | None = None) -> PoseReply | None:
         """Send one frame and wait up to the deadline. None: no live server or no reply in time.
 
+        ``stamp``: the frame's capture time in seconds (any clock, the same for all of a client's frames); None or 0: the
+        time of this call, right for a live camera whose frames are sent as they are taken. The server's motion model
+        and blur matching run on these times (without any, a 120-frame office walk ran at 5.5 instead of 14.6 FPS,
+        0.054 instead of 0.037 deg): replaying a recording, pass its own.
         ``exposure_s``: the frame's exposure time when the camera reports it (the server matches motion blur with it).
         ``readout_s``: the camera's rolling-shutter readout, first row to last (phones; None: a global shutter).
         ``near``: ((x, y, z), radius m): where the camera is, roughly, while the server has no pose for it (a start
         among look-alike places; protocol.messages.NearMsg).
         """
+        if not stamp:
+            stamp = time.monotonic()
         if isinstance(image, np.ndarray):
             image, encoding = encode_image(image)
         encoding = encoding or ImageEncoding.JPEG

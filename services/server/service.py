@@ -186,6 +186,7 @@ class _Client:
     T_last: Pose | None = None
     frames: int = 0
     carry: _Carry = field(default_factory=_Carry)  # what frames not tracked hand to the next that is
+    untimed: bool = False  # whether it was told that its frames come without capture times
 
 
 class LocalizationServer:
@@ -461,6 +462,10 @@ class LocalizationServer:
         if reset:
             c.tracker.reset()
             c.T_last = None
+        if req.stamp <= 0 and not c.untimed:  # (the Python client stamps every frame; another may not)
+            c.untimed = True
+            _event(logging.WARNING, "no_capture_time", client=req.client,
+                   why="frames without a stamp are tracked without a motion model: slower and less sure in fast motion")
         extra = {"readout_s": req.readout_s} if req.readout_s else {}  # (backends from before them need not take them)
         if req.near is not None:
             extra["near"] = ((req.near.x, req.near.y, req.near.z), req.near.radius_m)
