@@ -11,6 +11,8 @@ copies the first --frames of SITE/seq_00 into OUT/VARIANT/ (ground truth copied)
   iso       high gain: normal brightness, noise of 8 grey levels (luma) + 4 (per channel)
   cast      tungsten light with no white balance: blue x0.7, red x1.3
   vignette  a cheap lens: 60 % darker in the corners
+  jpeg50    frames sent harder compressed, as a client on a thin link would: JPEG quality 50 ...
+  jpeg25    ... and 25 (8x8 blocks, ringing at edges)
 
 Then `cristal localize` runs Render & Match (SITE/reloc.npz) and Prebuild & Localize (SITE/map) over each copy and
 over the original's same frames, each from a cold start, and a table prints frames localized, APE with no alignment
@@ -57,7 +59,9 @@ def _vignette(im: np.ndarray, rng) -> np.ndarray:
     return np.clip(im.astype(np.float32) * (1 - 0.6 * r2)[..., None], 0, 255).astype(np.uint8)
 
 
-VARIANTS = {"original": lambda im, rng: im, "mono": _mono, "dark": _dark, "iso": _iso, "cast": _cast, "vignette": _vignette}
+VARIANTS = {"original": lambda im, rng: im, "mono": _mono, "dark": _dark, "iso": _iso, "cast": _cast, "vignette": _vignette,
+            "jpeg50": lambda im, rng: im, "jpeg25": lambda im, rng: im}
+QUALITY = {"jpeg50": 50, "jpeg25": 25}  # the variant's JPEG quality (the others are written at the writer's 90)
 
 
 def make_variant(src: Path, out: Path, name: str, frames: int, seed: int = 0) -> np.ndarray:
@@ -66,13 +70,13 @@ def make_variant(src: Path, out: Path, name: str, frames: int, seed: int = 0) ->
     seq, rng = open_sequence(src), np.random.default_rng(seed)
     n = min(frames, len(seq))
     shown = None
-    with SequenceWriter(out, seq.camera) as writer:
+    with SequenceWriter(out, seq.camera, jpeg_quality=QUALITY.get(name, 90)) as writer:
         for i in range(n):
             f = seq.read(i)
             img = VARIANTS[name](f.image, rng)
             writer.add(seq.stamps[i], img, seq.groundtruth_pose(f.stamp) if seq.groundtruth is not None else None)
             if i == n // 2:
-                shown = img
+                shown = cv2.imread(str(out / writer.entries[-1][1])) if name in QUALITY else img  # (as compressed)
     return shown
 
 
