@@ -50,7 +50,7 @@ def seconds_per_unit(stamps: list[str] | np.ndarray, source: str | None = None) 
     for scale, name in UNITS:
         if median * scale <= MAX_INTERVAL_S:
             if scale != 1.0 and source:
-                log.warning("%s count %s, not seconds (their median interval, %g, is %.4g ms in %s)", source, name,
-                            median, 1e3 * median * scale, name)
+                log.warning("%s count %s, not seconds: their median interval, %g %s, is %.4g ms", source, name,
+                            median, name, 1e3 * median * scale)
             return scale, name
     return UNITS[-1]

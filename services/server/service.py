@@ -186,7 +186,7 @@ class _Client:
     T_last: Pose | None = None
     frames: int = 0
     carry: _Carry = field(default_factory=_Carry)  # what frames not tracked hand to the next that is
-    untimed: bool = False  # whether it was told that its frames come without capture times
+    untimed: bool = False  # whether the log has said that its frames come without capture times
 
 
 class LocalizationServer:
