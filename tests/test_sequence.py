@@ -233,6 +233,24 @@ def test_frames_numbered_instead_of_timed_are_taken_at_a_video_rate(tmp_path, ca
     assert np.allclose(np.diff([seq.seconds(s) for s in stamps]), 1 / 30)
 
 
+def test_intrinsics_for_another_resolution_of_the_same_picture_are_scaled(tmp_path, caplog):
+    """A phone's intrinsics are for its capture size, its video is recorded smaller: the same picture, so camera.json
+    is scaled to the images (with a warning); another shape is still refused when a frame is read."""
+    big = Camera(128, 96, 100, 101, 63.5, 47.5, (0.1, 0, 0, 0, 0))
+    w = SequenceWriter(tmp_path / "seq", CAM)
+    for s, img in zip(["1.0", "1.033333"], _frames(2)):
+        w.add(s, img)
+    w.close()
+    big.save(tmp_path / "seq" / "camera.json")
+    with caplog.at_level("WARNING"):
+        seq = open_sequence(tmp_path / "seq")
+    assert seq.camera == big.scaled(0.5) and (seq.camera.fx, seq.camera.cx) == (50.0, 31.5)
+    assert seq.read(1).image.shape == (48, 64, 3) and "scaled" in caplog.text
+    Camera(96, 96, 100, 100, 47.5, 47.5).save(tmp_path / "seq" / "camera.json")  # square: not the same picture
+    with pytest.raises(SequenceError, match="camera.json says 96x96"):
+        open_sequence(tmp_path / "seq").read(0)
+
+
 def test_frames_out_of_time_order_are_warned_about(tmp_path, caplog):
     w = SequenceWriter(tmp_path / "seq", CAM)
     for s, img in zip(["1.000000", "1.066667", "1.033333"], _frames(3)):

@@ -178,8 +178,27 @@ def _find_camera(candidates: list[Path]) -> Camera:
     raise SequenceError(f"no camera.json found (looked for {', '.join(str(c) for c in candidates)})")
 
 
+def _fitted(cam: Camera, width: int, height: int, source: Path) -> Camera:
+    """``cam`` for images of ``width`` x ``height``: itself when they are its size; scaled when they are the same picture
+    at another resolution (the same aspect to a pixel: intrinsics taken at a phone's capture size, video recorded
+    smaller), with a warning; else itself, and reading a frame says what does not fit."""
+    if (width, height) == (cam.width, cam.height) or width <= 0 or height <= 0:
+        return cam
+    s = width / cam.width
+    if abs(cam.height * s - height) > 0.5:
+        return cam
+    scaled = cam.scaled(s)
+    if (scaled.width, scaled.height) != (width, height):
+        return cam
+    log.warning("%s: images are %dx%d, camera.json says %dx%d: the same picture at %.3g x the resolution, so its "
+                "intrinsics are scaled (fx %.1f -> %.1f); if the images are cropped, give a camera.json for them",
+                source, width, height, cam.width, cam.height, s, cam.fx, scaled.fx)
+    return scaled
+
+
 def open_sequence(source: str | Path, camera: Camera | None = None) -> Sequence:
-    """Open a sequence folder or a video file."""
+    """Open a sequence folder or a video file. Intrinsics for another resolution of the same picture are scaled to
+    the images' (:func:`_fitted`)."""
     src = Path(source)
     if not src.exists():
         raise SequenceError(f"{src}: no such sequence folder or video file")
@@ -190,6 +209,7 @@ def open_sequence(source: str | Path, camera: Camera | None = None) -> Sequence:
         cap = cv2.VideoCapture(str(src))
         if not cap.isOpened():
             raise SequenceError(f"{src}: cannot open video")
+        cam = _fitted(cam, int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)), src)
         stamps = []
         while cap.grab():
             stamps.append(f"{cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0:.6f}")
@@ -208,6 +228,9 @@ def open_sequence(source: str | Path, camera: Camera | None = None) -> Sequence:
     if missing:  # a recorder that dropped a few writes: the rest is worth localizing (Sequence.frames(tolerant=True))
         log.warning("%s: %d of %d image(s) listed in rgb.txt are missing, e.g. %s", src, len(missing), len(files),
                     missing[0])
+    first = next((cv2.imread(str(f), cv2.IMREAD_UNCHANGED) for f in files if f.exists()), None)
+    if first is not None:
+        cam = _fitted(cam, first.shape[1], first.shape[0], src)
     gt_path = src / "groundtruth.txt"
     gt = read_tum(gt_path) if gt_path.exists() else None
     return Sequence(src, cam, [s for s, _ in entries], files, gt)
