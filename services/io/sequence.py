@@ -147,7 +147,7 @@ def _listed_by_name(path: Path) -> list[tuple[str, str]]:
 def _read_rgb_txt(path: Path) -> list[tuple[str, str]]:
     if not path.exists():
         return _listed_by_name(path)
-    entries, unordered = [], []
+    entries, unordered, last = [], [], 0.0
     for n, line in enumerate(path.read_text().splitlines(), 1):
         line = line.split("#", 1)[0].strip()
         if not line:
@@ -156,12 +156,13 @@ def _read_rgb_txt(path: Path) -> list[tuple[str, str]]:
         if len(parts) != 2:
             raise SequenceError(f"{path}:{n}: expected 'timestamp rgb/<file>', got {line!r}")
         try:
-            float(parts[0])
+            t = float(parts[0])
         except ValueError:
             raise SequenceError(f"{path}:{n}: timestamp {parts[0]!r} is not a number") from None
-        if entries and float(parts[0]) <= float(entries[-1][0]):
+        if entries and t <= last:
             unordered.append((n, parts[0], entries[-1][0]))
         entries.append((parts[0], parts[1]))
+        last = t
     if not entries:
         raise SequenceError(f"{path}: lists no frames")
     if unordered:  # tracking takes frames as they come: a motion model cannot run backwards, a trajectory file repeats
