@@ -162,6 +162,17 @@ class RMConfig:
     depth_max_residual: float = 0.01  # ... all within this fraction of their depth of it (a depth edge is refused)
     exposure_s: float | None = None  # camera exposure time; None: per frame from the caller, else calibrated
     blur_min_px: float = 8.0  # blur the keyframe render when the frame's predicted blur exceeds this (frame pixels)
+    blur_center: bool = True  # a frame blurred that much is matched against a render turned to where phase correlation
+    #                           puts it: XFeat's keypoints on a blurred image lie on the feature grid along the blur, so
+    #                           the pose stays where the render was (benchmarks/blur_bias.py: a render 0.3 deg off the
+    #                           truth gave poses 0.2-0.5 deg off along the turn; phase correlation read the 0.3 to 0.04)
+    center_min_response: float = 0.5  # ... when its peak is this clear (0.87-0.92 at 10-17 px of blur, 0.39 at 37 px
+    #                                   where its reading was 0.26 deg off) ...
+    center_max_deg: float = 3.0  # ... and the turn it reads is at most this (more is a wrong peak or a wild prediction)
+    centred_blur_power: float = 1.0  # a centred frame's XFeat covariance grows as (blur / blur_sigma_px)^this, not ^2:
+    #                                  centred, frames blurred 10-17 px erred 0.03-0.08 deg where ^2 said 0.12-0.23 (one
+    #                                  step from the true poses before); ^1 without centring let seed 8's walk report
+    #                                  frames 0.3-0.7 deg off (0.45 cm / 0.107 deg RMSE)
     exposure_prior: float = 0.3  # exposure / frame interval assumed until calibrated (indoor video: ~10 ms at 30 fps)
     calib_min_px: float = 20.0  # frames moving at least this much per frame interval calibrate the exposure ...
     calib_frames: int = 8  # ... until this many have
@@ -332,6 +343,7 @@ class _Frame:
     relocalizing: bool = False
     reason: str | None = None  # why this frame has no pose, when it has none
     stamp: float | None = None  # capture time (s), when the caller gives it
+    centred: bool = False  # matched against a render turned to where phase correlation put the blurred frame
 
 
 CHI2_6DOF_1PCT = 16.81  # two pose estimates disagree beyond this chi-square (6 dof, 1 %)
@@ -533,6 +545,13 @@ class RenderMatchTracker:
             tol = max(1.0, 0.1 * blur)
             if blur_length_px(fr.camera, Ta, Ta0) <= tol and blur_length_px(fr.camera, Tb, Tb0) <= tol:
                 return img, False
+        img = self._blur_render(kf, fr, Ta, Tb, n)
+        kf.blurred_img, kf.blurred, kf.direct_blurred = (Ta, Tb, img), None, None
+        return img, True
+
+    def _blur_render(self, kf: Keyframe, fr: _Frame, Ta: Pose, Tb: Pose, n: int) -> np.ndarray:
+        """The keyframe render in grey (uint8) as seen over an exposure from ``Ta`` to ``Tb`` (``n`` samples),
+        warped by its depth: a blurred view from poses near the keyframe's without rendering again."""
         t0 = time.perf_counter()
         r = kf.render
         gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)  # XFeat sees grey anyway: a third of the warping
@@ -543,9 +562,37 @@ class RenderMatchTracker:
         else:
             img = motion_blur_linear(gray, r.depth_filled, r.camera, kf.T_wc, Ta, Tb, n)
         fr.tm["blur_ms"] = fr.tm.get("blur_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
-        img = np.clip(img + 0.5, 0, 255).astype(np.uint8)
-        kf.blurred_img, kf.blurred, kf.direct_blurred = (Ta, Tb, img), None, None
-        return img, True
+        return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+    def _centered(self, fr: _Frame, T_pred: Pose) -> Pose | None:
+        """For a frame blurred at least ``blur_min_px``: the prediction turned by the global image shift between the frame
+        and the current keyframe seen blurred from the prediction (phase correlation, ``blur_center``), or None (a sharp
+        frame, no keyframe, an unclear peak). A pose solved from XFeat matches on a blurred frame stays where its render
+        was along the blur, so the render must be where the frame is, and the features measure the rest."""
+        kf = self.kf
+        exposure = self._exposure(fr)
+        if (not self.cfg.blur_center or kf is None or kf.frame_camera != fr.camera or fr.motion is None
+                or self._far(T_pred, kf) or self._blur_px(fr, exposure) < self.cfg.blur_min_px):
+            return None
+        D, dt = fr.motion
+        n = int(np.clip(np.ceil(self._blur_px(fr, exposure) * kf.scale), 2, 10))
+        half = 0.5 * (1 - 1 / n) * exposure / dt
+        ident = Pose.identity()
+        img = self._blur_render(kf, fr, T_pred @ ident.interpolate(D, -half), T_pred @ ident.interpolate(D, half), n)
+        h, w = img.shape
+        size = (w, h)
+        if size not in fr.gray:
+            fr.gray[size] = normalised_gray(fr.image, size)
+        (dx, dy), response = cv2.phaseCorrelate(normalised_gray(img).astype(np.float32), fr.gray[size].astype(np.float32),
+                                                cv2.createHanningWindow(size, cv2.CV_32F))
+        cam = kf.render.camera
+        turn = np.array([-np.arctan(dy / cam.fy), np.arctan(dx / cam.fx), 0.0])  # the prediction's turn off the frame
+        if response < self.cfg.center_min_response or np.degrees(np.linalg.norm(turn)) > self.cfg.center_max_deg:
+            log.debug("blur centring: no clear shift (%.1f, %.1f px, response %.2f)", dx, dy, response)
+            return None
+        log.debug("blur centring: prediction turned %s deg (%.2f, %.2f px, response %.2f)", np.round(np.degrees(-turn), 3),
+                  dx, dy, response)
+        return T_pred @ Pose.from_rotvec_t(-turn, np.zeros(3))
 
     def _blurred_points(self, kf: Keyframe, fr: _Frame, exposure_s: float, reuse: bool = True) -> tuple:
         """The keyframe's features, world points and grey image after blurring its render with the frame's
@@ -575,7 +622,8 @@ class RenderMatchTracker:
                 r.px_factor = px_factor
                 r.px_deg = float(np.degrees(1.0 / max(fr.camera.fx, fr.camera.fy)))
                 # the blur as the matched features see it (live frame at kf.scale = base scale / px_factor)
-                r.cov = self._blur_scaled(r.cov, self._blur_px(fr, self._exposure(fr)) * self._base_scale(fr.camera) / px_factor)
+                r.cov = self._blur_scaled(r.cov, self._blur_px(fr, self._exposure(fr)) * self._base_scale(fr.camera) / px_factor,
+                                          power=self.cfg.centred_blur_power if fr.centred else 2.0)
                 if r.cov is not None:
                     r.cov = r.cov * self.cfg.match_sigma_scale ** 2
         fr.tm["match_ms"] = fr.tm.get("match_ms", 0.0) + 1e3 * (t1 - t0)
@@ -1150,9 +1198,11 @@ class RenderMatchTracker:
                 T_pred = self.T_last @ Pose.identity().interpolate(D, fr.dt_next / dt)
             if motion is not None or (fr.motion is not None and self.motion_tracked):
                 predicted = T_pred  # (a motion averaged over a LOST gap is too rough to judge a pose by)
+            centred = self._centered(fr, T_pred)
+            T_pred, fr.centred = centred or T_pred, centred is not None
             kf = self.kf
             direct = self.cfg.direct_points > 0
-            if kf is None or kf.frame_camera != camera or self._far(T_pred, kf):
+            if kf is None or kf.frame_camera != camera or self._far(T_pred, kf) or centred is not None:
                 new_kf = None
                 # a new render, tracked into directly (XFeat only if that fails): after a tracked frame, or from where
                 # the odometry carried a LOST one (its frames in a whip pan were XFeat's alone, too blurred to report)
