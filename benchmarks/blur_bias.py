@@ -27,7 +27,6 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _site import ensure_site  # noqa: E402
@@ -36,18 +35,8 @@ from services.features.xfeat import XFeatExtractor  # noqa: E402
 from services.geometry.se3 import Pose  # noqa: E402
 from services.io.scans import load_scan  # noqa: E402
 from services.io.sequence import open_sequence  # noqa: E402
-from services.localize.render_match import RenderMatchTracker, RMConfig, _Frame, normalised_gray  # noqa: E402
+from services.localize.render_match import RenderMatchTracker, RMConfig, _Frame, normalised_gray, phase_turn  # noqa: E402
 from services.render.renderer import Renderer  # noqa: E402
-
-
-def phase_offset_deg(render_gray: np.ndarray, image: np.ndarray, fx: float, fy: float) -> np.ndarray:
-    """The render's turn off the frame (camera x, y, z rotation vector, degrees) that the global image shift between
-    them says, by phase correlation (``fx``, ``fy``: focal lengths at the render's resolution)."""
-    h, w = render_gray.shape
-    live = normalised_gray(image, (w, h)).astype(np.float32)
-    (dx, dy), _ = cv2.phaseCorrelate(normalised_gray(render_gray).astype(np.float32), live,
-                                     cv2.createHanningWindow((w, h), cv2.CV_32F))
-    return np.degrees([-np.arctan(dy / fy), np.arctan(dx / fx), 0.0])
 
 
 def main() -> None:
@@ -56,9 +45,10 @@ def main() -> None:
     ap.add_argument("--frames", type=int, nargs=2, default=(58, 70), metavar=("FIRST", "LAST"))
     ap.add_argument("--step", type=int, default=2)
     ap.add_argument("--offset", type=float, default=0.3, help="degrees the render is turned off the truth")
+    ap.add_argument("--seed", type=int, default=2, help="the office seed to simulate when --site has no site yet")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    site = ensure_site(args.site, seed=2 if args.site.rstrip("/").endswith("-s2") else 1)
+    site = ensure_site(args.site, seed=args.seed)
     seq = open_sequence(site / "seq_00")
     exposure = json.loads((site / "site.json").read_text())["config"]["sensor"]["exposure_time_s"]
     tr = RenderMatchTracker(Renderer(load_scan(site / "scan.ply")), XFeatExtractor(device="cpu", top_k=1024, max_side=480),
@@ -87,10 +77,9 @@ def main() -> None:
             errors.append("none" if r is None else f"{float(np.degrees((G.inverse() @ r.T_wc).rotvec()) @ axis):+.3f}")
             inliers.append("0" if r is None else str(r.n_inliers))
             img = tr._blurred_image(kf, fr, exposure)[0] if tr._blur_px(fr, exposure) >= tr.cfg.blur_min_px else kf.gray
-            cam = kf.render.camera
-            read = phase_offset_deg(img, f.image, cam.fx, cam.fy)
-            reads.append(f"{float(read @ axis):+.3f}")
-            Pc = P @ Pose.from_rotvec_t(-np.radians(read), np.zeros(3))
+            turn_back, _ = phase_turn(normalised_gray(img), normalised_gray(f.image, img.shape[::-1]), kf.render.camera)
+            reads.append(f"{-float(np.degrees(turn_back) @ axis):+.3f}")  # the render's offset, as read
+            Pc = P @ Pose.from_rotvec_t(turn_back, np.zeros(3))
             rc = tr._match(tr._keyframe(Pc, fr), fr, Pc)
             centred.append("none" if rc is None else f"{float(np.degrees((G.inverse() @ rc.T_wc).rotvec()) @ axis):+.3f}")
         print(f"| {i} | {np.degrees(np.linalg.norm(turn)):.2f} | {tr._blur_px(fr, exposure):.1f} | {' / '.join(errors)} | "

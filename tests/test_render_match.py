@@ -721,7 +721,7 @@ def test_blurred_frames_report_a_larger_uncertainty(rm_setup):
 
     renderer, ext, _, seq, _ = rm_setup
     base = dict(exposure_s=0.06, blur_min_px=0.5, max_sigma_deg=1e3, max_sigma_m=1e3,  # frames 2/30 s apart
-                blur_center=False)  # (a centred frame scales by the square root: the next test)
+                blur_center=False)  # (a centred frame's scales by its square root: RMConfig.centred_blur_power)
     res = []
     for cfg in (RMConfig(**base, blur_sigma_px=1e9), RMConfig(**base)):  # without, then with the scaling
         tr = RenderMatchTracker(renderer, ext, db=None, cfg=cfg)

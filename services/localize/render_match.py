@@ -30,7 +30,10 @@ Three things keep it accurate where a plain render-and-match is not:
   Blurred matches still err more than their scatter says (measured on the office walks: the pose
   error is ~2x the predicted 1-sigma below 10 px of blur, 5-15x at 15-30 px), so the predicted
   uncertainty is scaled by blur / 5 px (of a 640-wide frame, i.e. 3.75 px at the 480 px XFeat sees)
-  before the gate and on the wire.
+  before the gate and on the wire. One reason: on a blurred frame XFeat's keypoints lie on its feature
+  grid along the blur, so the pose stays where the render was. A frame blurred over ``blur_min_px`` is
+  therefore matched against a render turned to where phase correlation with the blurred keyframe puts
+  it (``_centered``), and its uncertainty scaled by the square root of that factor instead.
 - **Keypoint bias between viewpoints.** XFeat places a keypoint by its network's 8-pixel cells, so
   the same corner seen from two poses a few pixels apart comes out shifted differently (measured:
   0.03 deg at a render from the very pose, 0.12-0.2 deg from any other, even with the simulator's
@@ -78,7 +81,8 @@ from services.relocalize.hint import near_hint
 from services.relocalize.reach import FloorPlan
 from services.render.depth_sampling import invented_near, plane_normals, support_fraction
 
-__all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "floor_plan", "normalised_gray", "refine_matches_lk"]
+__all__ = ["Status", "RMConfig", "FrameResult", "RenderMatchTracker", "floor_plan", "normalised_gray", "phase_turn",
+           "refine_matches_lk"]
 
 log = logging.getLogger(__name__)
 
@@ -306,6 +310,17 @@ def normalised_gray(image: np.ndarray, size: tuple[int, int] | None = None) -> n
     mean, std = cv2.meanStdDev(g)
     a = 50.0 / (float(std[0, 0]) + 1e-6)
     return cv2.addWeighted(g, a, g, 0.0, 128.0 - a * float(mean[0, 0]))  # saturates to uint8
+
+
+def phase_turn(render_gray: np.ndarray, live_gray: np.ndarray, camera: Camera) -> tuple[np.ndarray, float]:
+    """The turn (camera-frame rotation vector, radians, about x and y) from the view rendered as ``render_gray`` to the
+    one ``live_gray`` shows (both grey, the same size; ``camera``: the render's), read from their global image shift by
+    phase correlation, and the peak's response (near 1: one clean shift). A blurred frame's pose stays where its render
+    was along the blur (see ``RenderMatchTracker._centered``); this reads where the frame is from the content."""
+    h, w = render_gray.shape
+    (dx, dy), response = cv2.phaseCorrelate(render_gray.astype(np.float32), live_gray.astype(np.float32),
+                                            cv2.createHanningWindow((w, h), cv2.CV_32F))
+    return np.array([np.arctan(dy / camera.fy), -np.arctan(dx / camera.fx), 0.0]), float(response)
 
 
 def refine_matches_lk(template: np.ndarray, target: np.ndarray, uv_template: np.ndarray, uv_target: np.ndarray,
@@ -579,20 +594,15 @@ class RenderMatchTracker:
         half = 0.5 * (1 - 1 / n) * exposure / dt
         ident = Pose.identity()
         img = self._blur_render(kf, fr, T_pred @ ident.interpolate(D, -half), T_pred @ ident.interpolate(D, half), n)
-        h, w = img.shape
-        size = (w, h)
+        size = (img.shape[1], img.shape[0])
         if size not in fr.gray:
             fr.gray[size] = normalised_gray(fr.image, size)
-        (dx, dy), response = cv2.phaseCorrelate(normalised_gray(img).astype(np.float32), fr.gray[size].astype(np.float32),
-                                                cv2.createHanningWindow(size, cv2.CV_32F))
-        cam = kf.render.camera
-        turn = np.array([-np.arctan(dy / cam.fy), np.arctan(dx / cam.fx), 0.0])  # the prediction's turn off the frame
+        turn, response = phase_turn(normalised_gray(img), fr.gray[size], kf.render.camera)
         if response < self.cfg.center_min_response or np.degrees(np.linalg.norm(turn)) > self.cfg.center_max_deg:
-            log.debug("blur centring: no clear shift (%.1f, %.1f px, response %.2f)", dx, dy, response)
+            log.debug("blur centring: no clear shift (%s deg, response %.2f)", np.round(np.degrees(turn), 3), response)
             return None
-        log.debug("blur centring: prediction turned %s deg (%.2f, %.2f px, response %.2f)", np.round(np.degrees(-turn), 3),
-                  dx, dy, response)
-        return T_pred @ Pose.from_rotvec_t(-turn, np.zeros(3))
+        log.debug("blur centring: prediction turned %s deg (response %.2f)", np.round(np.degrees(turn), 3), response)
+        return T_pred @ Pose.from_rotvec_t(turn, np.zeros(3))
 
     def _blurred_points(self, kf: Keyframe, fr: _Frame, exposure_s: float, reuse: bool = True) -> tuple:
         """The keyframe's features, world points and grey image after blurring its render with the frame's
