@@ -16,8 +16,10 @@ not judged), and the change against the baseline file. A row is a regression whe
 15 % + 0.05 cm; the exit status is then 1. --update writes this run's numbers as the new baseline (commit it with
 the change that moved them).
 
-Sites come from `python benchmarks/sim.py` and the presets named in benchmarks/RESULTS.md; databases from `cristal
-build-db`, maps from `cristal prebuild`. A full sweep of the ten walks takes ~20 minutes on 2 cores.
+Sites come from `python benchmarks/sites.py` (their recipes: `cristal sim`, `cristal build-db`, `cristal prebuild`).
+Each walk's numbers are stored with the fingerprint of the site it ran on (sites.py); a walk on a site that differs
+from the baseline's is not judged (the same recipe built by older code can differ: rebuild the baseline on it).
+A full sweep of the ten walks takes ~20 minutes on 2 cores.
 """
 
 from __future__ import annotations
@@ -35,6 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from services.eval.ape import compute_ape, uncertainty_check  # noqa: E402
 from services.io.frame_log import frame_log_path, read_frame_log  # noqa: E402
 from services.io.trajectory import read_tum  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sites import fingerprint  # noqa: E402
 
 OFF_M, OFF_DEG = 0.05, 1.0
 
@@ -71,12 +76,15 @@ def run(site: Path, method: str, out: Path, extra: tuple[str, ...] = ()) -> dict
             "off": int(((a.trans_err > OFF_M) | (a.rot_err_deg > OFF_DEG)).sum()),
             "max_cm": round(100 * float(a.trans_err.max(initial=0.0)), 2),
             "max_deg": round(float(a.rot_err_deg.max(initial=0.0)), 3),
-            "beyond_3sigma": check["beyond_3sigma"], "fps": round(s["fps"], 1), "wall_s": round(time.perf_counter() - t0, 1)}
+            "beyond_3sigma": check["beyond_3sigma"], "fps": round(s["fps"], 1), "wall_s": round(time.perf_counter() - t0, 1),
+            "site": fingerprint(site, method)}
 
 
 def verdict(now: dict, base: dict | None, tolerance: int) -> str:
     if base is None:
         return "new"
+    if base.get("site") and now.get("site") != base["site"]:  # (sites.py: the same recipe built by other code)
+        return "not judged: another site than the baseline's (sites.py fingerprint)"
     worse = []
     if now["localized"] < base["localized"] - tolerance:
         worse.append(f"{now['localized'] - base['localized']:+d} frames")
