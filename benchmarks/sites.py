@@ -26,8 +26,8 @@ from pathlib import Path
 
 log = logging.getLogger("sites")
 
-# name -> (cristal sim arguments, cristal build-db arguments, cristal prebuild arguments or None: no map for it)
-SITES: dict[str, tuple[list[str], list[str], list[str] | None]] = {
+# name -> (cristal sim arguments, cristal build-db arguments, cristal prebuild arguments)
+SITES: dict[str, tuple[list[str], list[str], list[str]]] = {
     "office": (["--preset", "office", "--seed", "1"], [], []),
     "office-s2": (["--preset", "office", "--seed", "2"], [], []),
     "office-s8": (["--preset", "office", "--seed", "8"], [], []),
@@ -44,11 +44,14 @@ DEFAULT = ["office", "office-s2", "office-s8", "office-s13", "office-hd", "wareh
 SLOW_MAPS = {"warehouse-s3"}
 
 
-def _cristal(*args: str) -> None:
+def cristal(*args: str) -> subprocess.CompletedProcess:
+    """Run `cristal ARGS` with this interpreter from the repository root (walks.py's localizations too); its output
+    captured, RuntimeError with the tail of stderr when it fails."""
     cmd = [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main(sys.argv[1:]))", *args]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     if res.returncode != 0:
         raise RuntimeError(f"cristal {' '.join(args)} failed:\n{res.stderr[-2000:]}")
+    return res
 
 
 def build(root: Path, name: str, maps: bool) -> None:
@@ -60,12 +63,12 @@ def build(root: Path, name: str, maps: bool) -> None:
         steps.append(("sim", ["sim", *sim, "--out", str(site)]))
     if not (site / "reloc.npz").is_file():
         steps.append(("build-db", ["build-db", str(site / "scan.ply"), "--out", str(site / "reloc.npz"), *db]))
-    if maps and pre is not None and not (site / "map" / "map.msg").is_file():
+    if maps and not (site / "map" / "map.msg").is_file():
         steps.append(("prebuild", ["prebuild", str(site / "scan.ply"), "--camera", str(site / "seq_00" / "camera.json"),
                                    "--out", str(site / "map"), *pre]))
     for what, args in steps:
         t0 = time.perf_counter()
-        _cristal(*args)
+        cristal(*args)
         log.info("%s: %s in %.0f s", name, what, time.perf_counter() - t0)
 
 
@@ -119,7 +122,7 @@ def main() -> int:
         site = args.root / name
         sim, db, pre = SITES[name]
         print(json.dumps({"site": name, "sim": " ".join(sim), "build_db": " ".join(db),
-                          "prebuild": None if pre is None else " ".join(pre),
+                          "prebuild": " ".join(pre),
                           "rm": fingerprint(site, "rm"), "pnl": fingerprint(site, "pnl")}))
     return 0
 

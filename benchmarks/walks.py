@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import shlex
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -39,7 +38,7 @@ from services.io.frame_log import frame_log_path, read_frame_log  # noqa: E402
 from services.io.trajectory import read_tum  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sites import fingerprint  # noqa: E402
+from sites import cristal, fingerprint  # noqa: E402
 
 OFF_M, OFF_DEG = 0.05, 1.0
 
@@ -62,12 +61,8 @@ def inputs(site: Path, method: str) -> list[str] | None:
 def run(site: Path, method: str, out: Path, extra: tuple[str, ...] = ()) -> dict:
     """One walk: the localizer's JSON summary plus the frames reported off (beyond OFF_M or OFF_DEG). ``extra``: more
     `cristal localize` arguments."""
-    cmd = [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main(sys.argv[1:]))",
-           "-q", "localize", *inputs(site, method), "--out", str(out), *extra]
     t0 = time.perf_counter()
-    res = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
-    if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd[3:])} failed:\n{res.stderr[-2000:]}")
+    res = cristal("-q", "localize", *inputs(site, method), "--out", str(out), *extra)
     s = json.loads(res.stdout.strip().splitlines()[-1])
     a = compute_ape(read_tum(site / "seq_00" / "groundtruth.txt"), read_tum(out), "none", strict=False)
     check = uncertainty_check(a, read_frame_log(frame_log_path(out)))  # each pose against its own predicted 1-sigma
