@@ -1237,6 +1237,39 @@ def test_a_lost_frame_the_database_cannot_place_is_found_in_views_rendered_where
         assert (tr.around is None) == (cfg.look_around_s == 0)  # (the noise frame, 0.05 s after, looked around)
 
 
+def test_a_look_around_pose_below_the_bar_is_verified_when_the_frame_before_found_it_too(rm_setup):
+    """A coarse pose among the look-around's views with fewer inliers than a pose needs (here the bar is set out of
+    reach) is verified when the frame just before had its best coarse pose there too: a chance fit does not repeat from
+    frame to frame, the right place does (the office walk's rack close-up after the whip pan: 25-29 inliers a frame,
+    each 1-3.5 cm from the truth). The first such frame stays LOST; so does one whose frame before found nothing, or
+    with the rule off."""
+    from services.relocalize.database import RelocDB
+
+    renderer, ext, db, seq, _ = rm_setup
+    away = RelocDB(db.view_poses + np.r_[30.0, 0, 0, 0, 0, 0, 0], db.view_start, db.xyz + [30.0, 0, 0], db.desc,
+                   db.vlad, db.vocab, dict(db.meta))
+    f6, f7, f8 = seq.read(6), seq.read(7), seq.read(8)
+    s6, s7, s8 = float(f6.stamp), float(f7.stamp), float(f8.stamp)
+    noise = np.random.default_rng(0).integers(0, 255, f7.image.shape, dtype=np.uint8)
+    out_of_reach = RMConfig(recover_s=0.0, reloc_min_inliers=10**4)  # (recover_s: the last pose's render would re-acquire)
+
+    def run(cfg: RMConfig, frames):
+        tr = RenderMatchTracker(renderer, ext, away, cfg)
+        assert tr.process(f6.image, seq.camera, prior=seq.groundtruth.poses[6], stamp=s6).status == Status.TRACKING
+        assert tr.process(noise, seq.camera, stamp=s6 + 0.01).status == Status.LOST
+        return [tr.process(image, seq.camera, stamp=stamp) for image, stamp in frames]
+
+    first, second = run(out_of_reach, [(f7.image, s7), (f8.image, s8)])
+    assert first.status == Status.LOST and "a pose needs 10000" in first.reason
+    assert second.status == Status.RELOCALIZED
+    dt, dr = seq.groundtruth.poses[8].distance_to(second.T_wc)
+    assert dt < 0.03 and dr < 0.5
+    off = dataclasses.replace(out_of_reach, look_around_repeat=(10**4, 0.1, 5.0))
+    assert [r.status for r in run(off, [(f7.image, s7), (f8.image, s8)])] == [Status.LOST] * 2
+    gap = run(out_of_reach, [(f7.image, s7), (noise, 0.5 * (s7 + s8)), (f8.image, s8)])
+    assert [r.status for r in gap] == [Status.LOST] * 3  # the frame before f8 (noise) found nothing
+
+
 def test_a_tracked_frame_whose_solved_motion_outruns_the_prediction_counts_that_motion_s_blur(rm_setup):
     """A frame matched for the blur the motion so far predicts, whose solved pose shows it moved much further (a whip
     pan starting), is as uncertain as that motion's blur makes it. The same frame, stamped as if it came one frame

@@ -58,6 +58,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -158,6 +159,12 @@ class RMConfig:
     #                             walk frames 285-299), views with the frame's camera at its own height 40-70
     look_around_overlap: float = 0.7  # ... their yaw step, as a fraction of the frame's horizontal field of view
     look_around_step_m: float = 0.3  # ... rendered again once the camera is expected this far from where they were
+    look_around_repeat: tuple[int, float, float] = (20, 0.1, 5.0)  # ... and a coarse pose among them with fewer inliers
+    #                                 than reloc_min_inliers, but at least the first of these, is verified when the
+    #                                 previous frame's best coarse pose among them lies within the second (metres) and
+    #                                 third (degrees) of it: chance fits do not repeat from frame to frame, the right
+    #                                 place does (office walk, the rack close-up after the whip pan, frames 286-295:
+    #                                 25-29 inliers a frame, every one 1-3.5 cm / 0.7-1.9 deg from the truth)
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
     odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for up to
@@ -359,6 +366,7 @@ class _Frame:
     reason: str | None = None  # why this frame has no pose, when it has none
     stamp: float | None = None  # capture time (s), when the caller gives it
     centred: bool = False  # matched against a render turned to where phase correlation put the blurred frame
+    best_coarse: PnpResult | None = None  # the best coarse pose of the last relocalization search
 
 
 CHI2_6DOF_1PCT = 16.81  # two pose estimates disagree beyond this chi-square (6 dof, 1 %)
@@ -433,6 +441,8 @@ class RenderMatchTracker:
         self.anchor: _Anchor | None = None  # where the camera was last known to be (a reported pose or a caller's hint)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.around: tuple[np.ndarray, Camera, RelocDB] | None = None  # views rendered by _look_around: (where, for which camera, them)
+        self.around_best: tuple[float, Pose] | None = None  # the best coarse pose among them for this frame: (stamp, pose)
+        self.around_prev: tuple[float, Pose] | None = None  # ... and for the frame before
         self.lost_frames = 0
         self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
         self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried through LOST frames by the odometry
@@ -980,7 +990,8 @@ class RenderMatchTracker:
     def _relocalize(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
                     reach: tuple[np.ndarray, float] | None = None,
                     walk: tuple[np.ndarray, float] | None = None, db: RelocDB | None = None,
-                    scale: float | None = None, strong: bool = False) -> PnpResult | None:
+                    scale: float | None = None, strong: bool = False,
+                    repeats: Callable[[PnpResult], bool] | None = None) -> PnpResult | None:
         """A pose from the database, verified: coarse poses from the best-matching views (one per place), each
         rendered at and matched again until one passes the report gate; refused when two places fit the
         frame about as well (repetitive sites), coarsely or verified. ``near`` = (recent position, radius): search
@@ -988,7 +999,8 @@ class RenderMatchTracker:
         (a bay of identical racks 2-4 m on); ``walk`` = (position, metres): refuse a pose the camera cannot have walked
         to from there through the scan's free space (:meth:`_walkable`: the next aisle over). ``db``: views to search
         other than the database (:meth:`_look_around`'s), matched at ``scale`` of the frame's resolution; ``strong``:
-        a coarse pose needs ``reloc_min_inliers`` to be verified even where the camera cannot be far."""
+        a coarse pose needs ``reloc_min_inliers`` to be verified even where the camera cannot be far; ``repeats``: the
+        best coarse pose is verified with fewer (``look_around_repeat``) when this says an earlier frame found it too."""
         cfg = self.cfg
         db = db or self.db
         scale = scale or self._reloc_scale(fr.camera)
@@ -1000,6 +1012,8 @@ class RenderMatchTracker:
         need = cfg.reloc_weak_inliers if weak else cfg.reloc_min_inliers
         ambiguity, far = cfg.reloc_ambiguity, (cfg.reloc_cold_ambiguity if near is None else None)
         floor = min(need, int(min(ambiguity, far or ambiguity) * cfg.reloc_min_inliers))  # rivals may be weaker than the best
+        if repeats is not None:
+            floor = min(floor, cfg.look_around_repeat[0])
         within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
 
         def search(feats: Features) -> list[tuple[PnpResult, int]]:
@@ -1019,6 +1033,11 @@ class RenderMatchTracker:
             feats = self._live(fr, scale)
             t0 += time.perf_counter() - t1  # (features_ms)
             hyps = search(feats)
+        fr.best_coarse = hyps[0][0] if hyps else None
+        if (repeats is not None and hyps and cfg.look_around_repeat[0] <= hyps[0][0].n_inliers < need
+                and repeats(hyps[0][0])):
+            need = hyps[0][0].n_inliers  # (this one and its equals only)
+            log.debug("a coarse pose with %d inliers repeats the last frame's: verified", need)
         fr.tm["relocalize_ms"] = fr.tm.get("relocalize_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         fr.motion, fr.relocalizing = None, True  # a relocalized frame starts without motion
         if not hyps or hyps[0][0].n_inliers < need:
@@ -1114,7 +1133,17 @@ class RenderMatchTracker:
         why = fr.reason
         # (views with the frame's own camera near where it is share more with it than the database's: a weak coarse
         #  pose among them is mostly a blurred frame's chance fit, and verifying each cost ~1 s a frame in a whip pan)
-        r = self._relocalize(fr, near, reach, walk, db=self.around[2], scale=scale, strong=True)
+        last = self.around_prev
+
+        def repeats(coarse: PnpResult) -> bool:  # the frame before's best coarse pose among these views is close
+            if last is None or not 0 < fr.stamp - last[0] <= 0.5:
+                return False
+            d_m, d_deg = coarse.T_wc.distance_to(last[1])
+            return (d_m <= cfg.look_around_repeat[1] + cfg.max_speed_mps * (fr.stamp - last[0])
+                    and d_deg <= cfg.look_around_repeat[2])
+
+        r = self._relocalize(fr, near, reach, walk, db=self.around[2], scale=scale, strong=True, repeats=repeats)
+        self.around_best = None if fr.best_coarse is None else (fr.stamp, fr.best_coarse.T_wc)
         if r is None:
             inner = (fr.reason or "no pose").replace(" in the database", "")
             fr.reason = f"{why} (and among {self.around[2].n_views} views rendered where its motion led: {inner})"
@@ -1174,6 +1203,7 @@ class RenderMatchTracker:
         (a start in an aisle of identical racks). Kept until a pose is reported; ignored while tracking.
         """
         t_start = time.perf_counter()
+        self.around_prev, self.around_best = self.around_best, None  # (the look-around's best coarse pose: the frame before's)
         odometry = motion  # the device's, checked against the tracked motion; used only while it agrees
         motion = self.odometry.use(motion)
         consecutive = stamp is not None and self.stamp_last is not None and 0 < stamp - self.stamp_last < 0.5
