@@ -66,6 +66,25 @@ def test_relocalizes_a_cold_frame_and_refuses_garbage(rm_setup):
     assert tr.process(noise, seq.camera).status == Status.LOST
 
 
+def test_a_relocalized_xfeat_pose_reports_a_larger_position_sigma(rm_setup):
+    """A relocalized pose that no direct alignment replaced is XFeat's own, whose position errs more than its scatter
+    says (in far scenes, along the view): its position 1-sigma is taken ``reloc_xfeat_sigma_t`` times larger, its
+    orientation's is kept, and the pose itself is the same."""
+    renderer, ext, db, seq, _ = rm_setup
+    image = seq.read(7).image
+
+    def relocalized(scale: float):
+        r = RenderMatchTracker(renderer, ext, db, RMConfig(direct_points=0, reloc_xfeat_sigma_t=scale)).process(image, seq.camera)
+        assert r.status == Status.RELOCALIZED
+        return r
+
+    plain, scaled = relocalized(1.0), relocalized(2.0)
+    assert scaled.sigma_m == pytest.approx(2 * plain.sigma_m, rel=1e-6)
+    assert scaled.sigma_deg == pytest.approx(plain.sigma_deg, rel=1e-6)
+    assert plain.T_wc.distance_to(scaled.T_wc)[0] < 1e-9
+    assert seq.groundtruth.poses[7].distance_to(scaled.T_wc)[0] < 3 * scaled.sigma_m + 0.01
+
+
 def test_a_weak_relocalization_says_why_with_its_numbers_after_the_kind(rm_setup):
     """LOST frames are counted by the kind of their reason (lost_reasons): the inlier counts follow the kind."""
     from protocol.messages import reason_kind

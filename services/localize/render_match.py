@@ -145,6 +145,11 @@ class RMConfig:
     #                                          aisle 38 m off with 111 inliers; the top 33 views held one place with half
     #                                          that, the top 83 three (a periodic site), and the true place none
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
+    reloc_xfeat_sigma_t: float = 2.0  # a relocalized pose that no direct alignment replaced (XFeat's own) has its
+    #                                  position 1-sigma taken this many times larger: XFeat poses err 1.7-4.9x their
+    #                                  scatter, most along the view in far scenes (warehouse seed 3, aisles ~10 m deep:
+    #                                  frames 370-371 relocalized 5.1-5.3 cm off at 0.5-0.7 cm 1-sigma; a render at the
+    #                                  truth gave 0.8 cm, one 5 cm to the side 2.9 cm along the view). 1 = as solved
     reloc_min_agreement: float = 0.6  # a verified place over 2 m from the last known position (or found cold) whose
     #                                   render agrees with the frame less than this as a picture (services.localize.
     #                                   agreement: gradient correlation at 160 px) is refused, and is no rival either:
@@ -1052,7 +1057,11 @@ class RenderMatchTracker:
         for coarse, _ in hyps[:cfg.reloc_verify]:
             if coarse.n_inliers < need or (found is not None and coarse.n_inliers < cfg.reloc_rival_verify * found[0].n_inliers):
                 break
-            r = self._polish(self._reloc_blur(self._render_and_refine(fr, coarse.T_wc, cfg.reloc_refine_rounds), fr), fr, fuse=False)
+            x = self._render_and_refine(fr, coarse.T_wc, cfg.reloc_refine_rounds)
+            r = self._polish(self._reloc_blur(x, fr), fr, fuse=False)
+            if r is x and r is not None and r.cov is not None:  # XFeat's own pose: no direct one replaced it
+                k = np.r_[[cfg.reloc_xfeat_sigma_t] * 3, [1.0] * 3]
+                r = dataclasses.replace(r, cov=r.cov * np.outer(k, k))
             if not self._good(r):
                 continue
             if reach is not None and np.linalg.norm(r.T_wc.t - reach[0]) > reach[1]:
