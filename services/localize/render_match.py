@@ -1141,7 +1141,8 @@ class RenderMatchTracker:
             log.debug("looking around at %s: %d views in %.0f ms", np.round(pos, 2), len(poses), fr.tm["look_around_ms"])
         why = fr.reason
         # (views with the frame's own camera near where it is share more with it than the database's: a weak coarse
-        #  pose among them is mostly a blurred frame's chance fit, and verifying each cost ~1 s a frame in a whip pan)
+        #  pose among them is mostly a blurred frame's chance fit, and verifying each cost ~1 s a frame in a whip pan;
+        #  one the frame before found too is not: ``look_around_repeat``)
         last = self.around_prev
 
         def repeats(coarse: PnpResult) -> bool:  # the frame before's best coarse pose among these views is close
