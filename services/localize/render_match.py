@@ -145,7 +145,7 @@ class RMConfig:
     #                                          aisle 38 m off with 111 inliers; the top 33 views held one place with half
     #                                          that, the top 83 three (a periodic site), and the true place none
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
-    reloc_xfeat_sigma_t: float = 2.0  # a relocalized pose that no direct alignment replaced (XFeat's own) has its
+    reloc_xfeat_sigma_t: float = 2.0  # a relocalized or re-acquired pose that no direct alignment replaced (XFeat's own) has its
     #                                  position 1-sigma taken this many times larger: XFeat poses err 1.7-4.9x their
     #                                  scatter, most along the view in far scenes (warehouse seed 3, aisles ~10 m deep:
     #                                  frames 370-371 relocalized 5.1-5.3 cm off at 0.5-0.7 cm 1-sigma; a render at the
@@ -879,6 +879,18 @@ class RenderMatchTracker:
         r.cov = self._blur_scaled(r.cov, length * self._base_scale(fr.camera) / r.px_factor)
         return r
 
+    def _reacquire(self, fr: _Frame, T: Pose, kf: Keyframe | None = None) -> PnpResult | None:
+        """A pose for a frame without motion (relocalizing, or re-acquiring at the last good pose) from a rough one:
+        rendered at and matched until it settles (``kf``: a render at ``T`` already made), its blur read from the image
+        (:meth:`_reloc_blur`), then polished directly. Where no direct alignment replaced XFeat's pose, its position
+        covariance is scaled by ``reloc_xfeat_sigma_t``^2."""
+        x = self._render_and_refine(fr, T, self.cfg.reloc_refine_rounds, kf=kf)
+        r = self._polish(self._reloc_blur(x, fr), fr, fuse=False)
+        if x is not None and r is x and r.cov is not None:  # (_reloc_blur scales x's covariance in place)
+            k = np.r_[[self.cfg.reloc_xfeat_sigma_t] * 3, [1.0] * 3]
+            r = dataclasses.replace(r, cov=r.cov * np.outer(k, k))
+        return r
+
     def _gap_blur_px(self, T_wc: Pose, fr: _Frame) -> float:
         """A frame relocalized at ``T_wc`` soon after the last good pose (``gap_motion_s``): its blur (frame pixels)
         had the camera kept the mean motion between them over the exposure; 0 otherwise or with no exposure known.
@@ -1057,11 +1069,7 @@ class RenderMatchTracker:
         for coarse, _ in hyps[:cfg.reloc_verify]:
             if coarse.n_inliers < need or (found is not None and coarse.n_inliers < cfg.reloc_rival_verify * found[0].n_inliers):
                 break
-            x = self._render_and_refine(fr, coarse.T_wc, cfg.reloc_refine_rounds)
-            r = self._polish(self._reloc_blur(x, fr), fr, fuse=False)
-            if r is x and r is not None and r.cov is not None:  # XFeat's own pose: no direct one replaced it
-                k = np.r_[[cfg.reloc_xfeat_sigma_t] * 3, [1.0] * 3]
-                r = dataclasses.replace(r, cov=r.cov * np.outer(k, k))
+            r = self._reacquire(fr, coarse.T_wc)
             if not self._good(r):
                 continue
             if reach is not None and np.linalg.norm(r.T_wc.t - reach[0]) > reach[1]:
@@ -1318,8 +1326,7 @@ class RenderMatchTracker:
                 kf = self.recover_kf  # one render at the last good pose serves the whole stretch
                 if kf is None or kf.frame_camera != camera or kf.T_wc is not T_rec:
                     self.recover_kf = self._keyframe(T_rec, fr)
-                r = self._polish(self._reloc_blur(self._render_and_refine(fr, T_rec, self.cfg.reloc_refine_rounds,
-                                                                          kf=self.recover_kf), fr), fr, fuse=False)
+                r = self._reacquire(fr, T_rec, kf=self.recover_kf)
                 if self._good(r):
                     status = Status.RELOCALIZED
                     self.relocalizations += 1
