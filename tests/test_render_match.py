@@ -1399,3 +1399,32 @@ def test_a_relocalized_pose_is_not_replaced_by_a_direct_alignment_that_disagrees
         assert tr._polish(off, fr, fuse=False) is off  # a relocalization: they disagree, the pose stays as it was
     print(f"{len(seq)} frames: agreeing direct poses taken {taken}, disagreeing ones checked {checked}")
     assert taken >= 2 and checked >= 2
+
+
+def test_a_relocalization_refused_after_its_render_says_why_and_the_look_around_its_own_reason(rm_setup):
+    """A place confirmed by its render whose pose is then too uncertain to report says so, with its 1-sigma (not "no
+    place was confirmed"); and a look-around whose views fit but whose render confirms none says that after the
+    database's reason, not the database's reason again."""
+    from protocol.messages import reason_kind
+    from services.relocalize.database import RelocDB
+
+    renderer, ext, db, seq, _ = rm_setup
+    f7 = seq.read(7)
+    # XFeat's own relocalized pose with its position 1-sigma taken 1000x larger: confirmed, then too uncertain
+    unsure = RenderMatchTracker(renderer, ext, db, RMConfig(direct_points=0, reloc_xfeat_sigma_t=1000.0))
+    r = unsure.process(f7.image, seq.camera)
+    assert r.status == Status.LOST and reason_kind(r.reason) == "pose too uncertain to report", r.reason
+    assert r.reason.endswith("1-sigma) at the place found") and " cm / " in r.reason, r.reason
+
+    away = RelocDB(db.view_poses + np.r_[30.0, 0, 0, 0, 0, 0, 0], db.view_start, db.xyz + [30.0, 0, 0], db.desc,
+                   db.vlad, db.vocab, dict(db.meta))  # no database view near: the look-around's views must place it
+    f6, G6 = seq.read(6), seq.groundtruth.poses[6]
+    s6 = float(f6.stamp)
+    tr = RenderMatchTracker(renderer, ext, away, RMConfig(recover_s=0.0))  # (the last pose's own render would re-acquire it)
+    assert tr.process(f6.image, seq.camera, prior=G6, stamp=s6).status == Status.TRACKING
+    noise = np.random.default_rng(0).integers(0, 255, f7.image.shape, dtype=np.uint8)
+    assert tr.process(noise, seq.camera, stamp=s6 + 0.05).status == Status.LOST
+    tr.cfg = dataclasses.replace(tr.cfg, min_inliers=100000)  # from now on no render confirms a place
+    lost = tr.process(f7.image, seq.camera, stamp=s6 + 0.1)
+    assert lost.status == Status.LOST and reason_kind(lost.reason) == "no place in the database fits the frame", lost.reason
+    assert lost.reason.endswith("views rendered where its motion led: no place was confirmed by a render)"), lost.reason

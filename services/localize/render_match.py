@@ -1021,6 +1021,7 @@ class RenderMatchTracker:
         cfg = self.cfg
         db = db or self.db
         scale = scale or self._reloc_scale(fr.camera)
+        fr.reason = None  # this search's own (the look-around keeps the database's before it)
         feats = self._live(fr, scale)
         t0 = time.perf_counter()
         reach = reach or near
@@ -1071,6 +1072,9 @@ class RenderMatchTracker:
                 break
             r = self._reacquire(fr, coarse.T_wc)
             if not self._good(r):
+                if r is not None and fr.reason is None:  # confirmed by its render, but the frame's blur leaves it unsure
+                    fr.reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg "
+                                 f"1-sigma) at the place found")
                 continue
             if reach is not None and np.linalg.norm(r.T_wc.t - reach[0]) > reach[1]:
                 fr.reason = (f"place out of reach: found {np.linalg.norm(r.T_wc.t - reach[0]):.1f} m from where the camera "
