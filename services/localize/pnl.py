@@ -167,6 +167,7 @@ class PnlConfig:
     align_sigma_px: float = 0.5  # a corner patch's alignment noise (1 sigma, px; measured 0.2-0.3 px at the true pose)
     align_rmse_floor: float = 1.0  # the aligned solution's covariance assumes at least align_sigma_px of noise (whitened RMSE floor)
     warp_noise_ref: float = 0.0  # > 0: a patch's alignment noise is align_sigma_px x its warp's noise factor / this
+    align_probe_sigmas: float = 10.0  # the aligned pose's basin is tested from this many sigmas off (direct._probed)
     #                              (services.prebuild.patches.warp_noise_factor: a patch seen stretched from nearer than
     #                              its keyframe, or shrunk from much further, aligns worse). Off: at 1.6 (the population's
     #                              spread kept) the P&L walks gained 15 frames (960x540 79 -> 84, survey-density warehouse
@@ -735,7 +736,7 @@ class PnlLocalizer:
         cfg = self.cfg
         dc = DirectConfig(passes=cfg.align_passes, sigma_px=cfg.align_sigma_px, rmse_floor=cfg.align_rmse_floor,
                           min_inliers=cfg.min_inliers // 2, min_inlier_frac=cfg.align_min_inlier_frac, max_moved_px=max_moved_px,
-                          warp_noise_ref=cfg.warp_noise_ref)
+                          warp_noise_ref=cfg.warp_noise_ref, probe_sigmas=cfg.align_probe_sigmas)
         d = align_and_solve(self.patches, self._patch_of_row[rows], self._apos[rows], R, t, fr.K, self._gray(fr), dc, blur)
         return None if d is None else (d.R, d.t, d.inliers, d.rmse, d.sigma_m, d.sigma_deg, True)
 

@@ -223,6 +223,7 @@ class RMConfig:
     #                              saw; 3.1 -> 1.1 cm median; 960x540 walk 0.35 -> 0.32, office 0.15 -> 0.15 cm)
     direct_check: float = 0.4  # a direct pose less certain than this fraction of the report gate is checked by XFeat
     direct_check_xfeat_scale: float = 2.0  # ... whose 1 sigma is taken this many times larger there
+    direct_probe_sigmas: float = 10.0  # a direct pose's basin is tested from this many sigmas off (direct._probed)
     direct_corner_quality: tuple[float, ...] = (0.005, 0.002)  # corner strength, relative to the render's strongest, for
     #                                     those patches; the next only when the first leaves fewer than direct_min_inliers
     #                                     (a close-up render: a few strong label edges outshine the rest)
@@ -759,7 +760,7 @@ class RenderMatchTracker:
         m = 12 * cam.width / 640
         vis = np.flatnonzero((Xc[:, 2] > 0.1) & (u >= m) & (u < cam.width - 1 - m) & (v >= m) & (v < cam.height - 1 - m))
         need = max(self.cfg.min_inliers, self.cfg.direct_min_inliers)
-        d, dc = None, DirectConfig(min_inliers=need)
+        d, dc = None, DirectConfig(min_inliers=need, probe_sigmas=self.cfg.direct_probe_sigmas)
         if len(vis) >= need:
             d = align_and_solve(lp, vis, P[vis], T_cw.R, T_cw.t, cam.K, self._undistorted_gray(fr), dc)
         fr.tm["direct_ms"] = fr.tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
