@@ -167,12 +167,13 @@ class PnlConfig:
     align_sigma_px: float = 0.5  # a corner patch's alignment noise (1 sigma, px; measured 0.2-0.3 px at the true pose)
     align_rmse_floor: float = 1.0  # the aligned solution's covariance assumes at least align_sigma_px of noise (whitened RMSE floor)
     warp_noise_ref: float = 0.0  # > 0: a patch's alignment noise is align_sigma_px x its warp's noise factor / this
-    align_probe_sigmas: float = 10.0  # the aligned pose's basin is tested from this many sigmas off (direct._probed)
     #                              (services.prebuild.patches.warp_noise_factor: a patch seen stretched from nearer than
     #                              its keyframe, or shrunk from much further, aligns worse). Off: at 1.6 (the population's
     #                              spread kept) the P&L walks gained 15 frames (960x540 79 -> 84, survey-density warehouse
     #                              177 -> 188) but the test site's rolling-shutter and crowded-frame poses lost accuracy
     #                              (benchmarks/RESULTS.md, Prebuild & Localize, stop 28)
+    align_probe_sigmas: float = 10.0  # the aligned pose's basin is tested from this many sigmas off (direct._probed;
+    #                                   0: off, 20-30 % more FPS; benchmarks/RESULTS.md stop 51)
     denoise_above: float = 0.06  # a frame noisier than this (noise / grey-level spread, direct.noise_ratio) is smoothed
     #                              before patches are aligned to it: dark or high-ISO frames (inf: never)
 
