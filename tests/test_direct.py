@@ -110,8 +110,8 @@ def _align(lintel: bool, probe: float, off_m: float) -> tuple[float, float]:
     the wall in place."""
     lp, P = _doorway(lintel)
     truth = Pose.from_rotvec_t([0.0, 0.0, 0.0], [0.05, 0.0, 0.10])
-    start = (truth @ Pose.from_rotvec_t([0.0, -np.arctan2(off_m, WALL - 0.10), 0.0], [off_m, 0.0, 0.0])).inverse()
-    d = align_and_solve(lp, np.arange(len(P)), P, start.R, start.t, K, _render(truth, lintel),
+    start_cw = (truth @ Pose.from_rotvec_t([0.0, -np.arctan2(off_m, WALL - 0.10), 0.0], [off_m, 0.0, 0.0])).inverse()
+    d = align_and_solve(lp, np.arange(len(P)), P, start_cw.R, start_cw.t, K, _render(truth, lintel),
                         DirectConfig(probe_sigmas=probe))
     return float(np.linalg.norm(d.T_wc.t - truth.t)), d.sigma_m
 
