@@ -277,9 +277,9 @@ def _probed(d: DirectPose, lp: LandmarkPatches, pidx: np.ndarray, P: np.ndarray,
         return d
     Xc = P @ d.R.T + d.t
     depth = float(np.median(Xc[:, 2]))
-    S = np.diag([depth] * 3 + [1.0] * 3)  # rotation as the metres it moves the scene by
-    lam, V = np.linalg.eigh(S @ d.cov @ S)
-    e = V[:, -1] * math.sqrt(max(lam[-1], 0.0)) / np.diag(S)  # 1 sigma along the weakest direction, in (omega, v)
+    s = np.r_[[depth] * 3, [1.0] * 3]  # rotation as the metres it moves the scene by
+    lam, V = np.linalg.eigh(d.cov * np.outer(s, s))
+    e = V[:, -1] * math.sqrt(max(lam[-1], 0.0)) / s  # 1 sigma along the weakest direction, in (omega, v)
     Ju, Jv = _projection_jacobians(Xc, K[0, 0], K[1, 1])
     px = math.sqrt(float(np.mean((Ju @ e) ** 2 + (Jv @ e) ** 2)))  # RMS pixels 1 sigma moves the points
     k = min(cfg.probe_sigmas, cfg.probe_max_px / max(px, 1e-9))
