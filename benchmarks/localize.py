@@ -1,6 +1,6 @@
 """Render & Match on a simulated site: the cold relocalization rate.
 
-    python benchmarks/localize.py [--site runs/bench-sim/office] [--cold 40] [--seed 0]
+    python benchmarks/localize.py [--site runs/bench-sim/office] [--cold 40] [--seed 0] [--set reloc_px_ratio=1.8]
 
 Builds the relocalization database if missing (site/reloc.npz), then tries --cold randomly chosen frames,
 each with a fresh tracker and no prior (--seed picks which); success = RELOCALIZED within 5 cm and 1 degree of
@@ -24,7 +24,7 @@ from _site import ensure_site  # noqa: E402
 from services.features.xfeat import XFeatExtractor  # noqa: E402
 from services.io.scans import load_scan  # noqa: E402
 from services.io.sequence import open_sequence  # noqa: E402
-from services.localize.render_match import RenderMatchTracker, Status  # noqa: E402
+from services.localize.render_match import RenderMatchTracker, RMConfig, Status  # noqa: E402
 from services.relocalize.database import RelocDB, build_database  # noqa: E402
 from services.relocalize.roi import sample_positions  # noqa: E402
 from services.render.renderer import Renderer  # noqa: E402
@@ -37,7 +37,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="which random frames")
     ap.add_argument("--max-side", type=int, default=480)
     ap.add_argument("--db", help="relocalization database (default: SITE/reloc.npz, built if missing)")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="an RMConfig field for this run (repeatable): a variant measured against the default")
     args = ap.parse_args()
+    cfg = RMConfig(**{k: type(getattr(RMConfig(), k))(v) for k, v in (kv.split("=", 1) for kv in args.set)})
     torch.set_num_threads(1)
     site = ensure_site(args.site)
     scan = load_scan(site / "scan.ply")
@@ -52,7 +55,7 @@ def main() -> None:
     idx = rng.choice(len(seq), min(args.cold, len(seq)), replace=False)
     ok, wrong, times, missed = 0, 0, [], []
     for i in idx:
-        tr = RenderMatchTracker(renderer, ext, db)
+        tr = RenderMatchTracker(renderer, ext, db, cfg)
         t0 = time.perf_counter()
         r = tr.process(seq.read(int(i)).image, seq.camera)
         times.append(time.perf_counter() - t0)
