@@ -840,3 +840,51 @@ def test_a_patch_pose_from_an_untracked_prediction_is_checked_by_keypoints(pnl_s
     print(f"{reported} of {3 * 6 * len(seq)} reported, off: {off}; decided by a relocalization: {decided}")
     assert reported >= 0.9 * 3 * 6 * len(seq) and not off, (reported, off)
     assert decided and all(s == Status.RELOCALIZED for s in decided), decided
+
+
+def test_a_velocity_made_of_a_correction_is_not_carried(pnl_site, pnl_map, caplog):
+    """A pose handed over (or tracked) off the truth, then a frame whose patches pull it back: the motion between the two
+    holds the correction, and the next frame predicted with it starts off by as much, where patches can settle in a wrong
+    basin at a small 1-sigma (the narrow-lens walk reported frames 162-166 8-14 cm off at 0.3-0.5 cm). A pose further
+    from its constant-velocity prediction than the motion allows is now checked by keypoints and its motion is not
+    carried: the next frame is predicted from it with no motion, and checked too. Seeded on the truth, the motion is
+    carried as before. None is reported far off, and most are reported."""
+    import logging
+
+    from services.geometry.se3 import Pose, rotvec_to_rotmat
+    from services.io.sequence import open_sequence
+    from services.localize.pnl import PnlConfig, PnlLocalizer
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    loc = PnlLocalizer.load(pnl_map[0], PnlConfig())
+    gts = [seq.groundtruth_pose(seq.read(i).stamp) for i in range(len(seq))]
+    stamps = [float(seq.read(i).stamp) for i in range(len(seq))]
+    rng = np.random.default_rng(1)
+    trials, reported, off, carried = 0, 0, [], {}
+    for dist in (0.0, 0.02, 0.03):
+        for i in range(2, len(seq) - 1):
+            for _ in range(1 if dist == 0 else 3):
+                d, a = rng.standard_normal(3), rng.standard_normal(3)
+                wrong = Pose(rotvec_to_rotmat(a / np.linalg.norm(a) * np.radians(5 * dist)) @ gts[i - 1].R,
+                             gts[i - 1].t + dist * d / np.linalg.norm(d))
+                loc.reset()
+                loc.seed(gts[i - 2], stamp=stamps[i - 2])
+                loc.seed(wrong, stamp=stamps[i - 1])  # the velocity holds the error: frame i is predicted twice as far off
+                for j in (i, i + 1):
+                    caplog.clear()
+                    with caplog.at_level(logging.DEBUG, logger="services.localize.pnl"):
+                        r = loc.process(seq.read(j).image, cam, stamp=stamps[j])
+                    if j == i and r.T_wc is not None:  # (jumped: whether the pose was checked for being off the prediction)
+                        carried.setdefault(dist, []).append(("from the prediction" in caplog.text, loc._vel is not None))
+                    trials += 1
+                    if r.T_wc is not None:
+                        reported += 1
+                        dt, dr = gts[j].distance_to(r.T_wc)
+                        if dt > 0.03 or dr > 0.5:
+                            off.append((dist, j, round(100 * dt, 1), round(dr, 2)))
+    print(f"{reported} of {trials} reported, off: {off}; (jumped, motion carried) after frame i: {carried}")
+    assert all(c == (False, True) for c in carried[0.0]), carried[0.0]
+    jumped = [c for k in (0.02, 0.03) for c in carried[k] if c[0]]
+    assert len(jumped) >= 10 and not any(v for _, v in jumped), carried
+    assert not off and reported >= 0.8 * trials, (reported, trials, off)

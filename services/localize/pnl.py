@@ -172,6 +172,11 @@ class PnlConfig:
     #                              spread kept) the P&L walks gained 15 frames (960x540 79 -> 84, survey-density warehouse
     #                              177 -> 188) but the test site's rolling-shutter and crowded-frame poses lost accuracy
     #                              (benchmarks/RESULTS.md, Prebuild & Localize, stop 28)
+    innovation_sigmas: float = 4.0  # a pose aligned from the constant-velocity prediction further from it than this many
+    innovation_accel_mps2: float = 20.0  # sigmas plus this acceleration's a dt^2 / 2 is checked as an untracked prediction's
+    #                                      is (_checked), and its velocity is not carried to the next frame, which is checked
+    #                                      too: a velocity made of a correction predicted the narrow-lens walk's frames
+    #                                      161-166 5-15 cm off, and the patches aligned there (8-14 cm off at 0.3-0.5 cm 1-sigma)
     align_probe_sigmas: float = 10.0  # the aligned pose's basin is tested from this many sigmas off (direct._probed;
     #                                   0: off, 20-30 % more FPS; benchmarks/RESULTS.md stop 51)
     denoise_above: float = 0.06  # a frame noisier than this (noise / grey-level spread, direct.noise_ratio) is smoothed
@@ -365,6 +370,7 @@ class _Frame:
     spare: tuple | None = None  # the most certain aligned solution tracking found that was not good (PnlLocalizer._spare)
     unchecked: bool = False  # its pose came from an untracked prediction and nothing could check it (PnlLocalizer._checked)
     relocalized: bool = False  # ... or a relocalization replaced that pose (PnlLocalizer._checked)
+    jumped: bool = False  # its pose is further from the constant-velocity prediction than the motion allows (PnlLocalizer._consistent)
     exposure_fraction: float = 0.3  # the exposure over the interval since the last frame (motion blur from the velocity)
     near_rows: np.ndarray | None = None  # relocalization rows of the landmarks within a caller's hint (None: no hint)
     near: tuple[np.ndarray, float] | None = None  # that hint now: (position, how far the camera can be from it)
@@ -411,6 +417,7 @@ class PnlLocalizer:
         self._local_rows = np.zeros(0, np.int64)
         self._local_P = np.zeros((0, 3))
         self.relocalizations = 0
+        self._sigma_last = 0.0  # the last tracked pose's position 1-sigma (m)
         self._unsure = 0  # tracked frames in a row since the last reported pose that were too uncertain to report
         self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
         self._near: tuple[np.ndarray, float, float | None, int] | None = None  # hint: position, radius, stamp, frames since
@@ -457,6 +464,7 @@ class PnlLocalizer:
         self._tracked = False
         self._near = None
         self._unsure = 0
+        self._sigma_last = 0.0
         self.shutter.reset()
         self.carry.reset()
 
@@ -474,6 +482,7 @@ class PnlLocalizer:
         self._tracked = True  # (a server's pose: as good as a tracked one; with no velocity the next frame is checked)
         self._stamp = stamp
         self._unsure = 0
+        self._sigma_last = 0.0  # (the server's pose: its own 1-sigma is not handed over)
         self.carry.reset()
 
     def _direct_retry(self, fr: _Frame, pred: Pose, tm: dict, spare: bool = False):
@@ -497,6 +506,8 @@ class PnlLocalizer:
         from a prediction 20 cm off, keypoints too can hold a pose 22 cm off, office seed 8 frame 295); where neither
         gives a pose, kept but ``fr.unchecked`` (not reported: :meth:`process`). A relocalization's pose sets
         ``fr.relocalized``: the frame is then reported as relocalized, and no velocity is taken from the jump to it.
+        A pose aligned from a tracked frame's prediction but further from it than the motion allows (``fr.jumped``,
+        :meth:`_consistent`) is checked so too.
 
         From a prediction 3-20 cm off, the patches of a few near landmarks can lock onto the wrong edge while the far
         ones fit a pose anywhere along the translation-rotation valley they leave open, and a search can find a wrong
@@ -516,10 +527,24 @@ class PnlLocalizer:
             if agrees(c):
                 return r
             log.debug("a patch pose from an untracked prediction disagrees with a relocalization: not kept")
-            fr.relocalized = True
+            # after a jump from a tracked prediction, the tracked poses, the patches and the relocalization disagree
+            # three ways: the view is ambiguous here, so the relocalization is tracked on from, not reported (narrow-lens
+            # walk frame 160: patches 4.8 cm off, keypoints 4.4, the relocalization 6.6 at 0.4 cm 1-sigma)
+            fr.relocalized, fr.unchecked = True, fr.jumped
             return c
         fr.reason, fr.unchecked = None, True  # (the relocalization's reason: the frame keeps its pose, unreported)
         return r
+
+    def _consistent(self, r, pred: Pose, dt: float) -> bool:
+        """Whether a pose aligned from the constant-velocity prediction ``pred`` is within ``innovation_sigmas`` of it
+        (this pose's 1-sigma and the prediction's, about sqrt(3) x the last pose's) plus a hard acceleration's
+        a dt^2 / 2, as Render & Match's tracked poses must be. Further off, the pose corrected the track or slid off it."""
+        sigma = float(np.sqrt(r[4] ** 2 + 3.0 * self._sigma_last ** 2))
+        bound = self.cfg.innovation_sigmas * sigma + 0.5 * self.cfg.innovation_accel_mps2 * dt * dt
+        off = float(np.linalg.norm(-r[0].T @ r[1] - pred.t))
+        if off > bound:
+            log.debug("aligned pose %.1f cm from the prediction (bound %.1f cm): checked", 100 * off, 100 * bound)
+        return off <= bound
 
     def _spare(self, fr: _Frame, r):
         """The frame's tracking result, or its spare aligned solution (``fr.spare``) where that is more certain than a
@@ -1115,6 +1140,8 @@ class PnlLocalizer:
         if pred is not None:
             if self.patches is not None and self.cfg.align and self.cfg.direct_landmarks > 0:
                 r = self._direct_retry(fr, pred, tm, spare=True)  # no ORB at all when the prediction is inside the windows' reach
+                velocity = self._tracked and self._vel is not None and prior is None and motion is None
+                fr.jumped = r is not None and velocity and not self._consistent(r, pred, dt)
                 if r is None and self.cfg.search_landmarks > 0:  # too far off for the windows (a turn that changed)
                     found = self._recentred(fr, pred, tm)
                     if found is not None:
@@ -1123,7 +1150,7 @@ class PnlLocalizer:
                         if self.T_last is not None:
                             self._vel = self.T_last.inverse() @ found
                         r = self._direct_retry(fr, found, tm, spare=True)
-                if r is not None and not (self._tracked and self._vel is not None and prior is None):
+                if r is not None and (fr.jumped or not (self._tracked and self._vel is not None and prior is None)):
                     r = self._checked(fr, r, pred, tm)
                     if fr.relocalized:
                         status = Status.RELOCALIZED
@@ -1168,10 +1195,11 @@ class PnlLocalizer:
                              reason=fr.reason or "no pose")
         R, t, n, rmse, sig_m, sig_deg, _ = r
         T_wc = Pose(R.T, -R.T @ t)
+        self._sigma_last = sig_m
         if self.carry.tracked() and status == Status.TRACKING:  # tracked from a pose the odometry carried: re-acquired
             status = Status.RELOCALIZED
             self.relocalizations += int(self._good(r, fr))
-        if self.T_last is not None and status == Status.TRACKING:  # (also weakly constrained: a fast pan keeps it)
+        if self.T_last is not None and status == Status.TRACKING and not fr.jumped:  # (also weakly constrained: a fast pan keeps it)
             self._vel = self.T_last.inverse() @ T_wc
             if odometry is not None and self._good(r, fr):
                 self.odometry.update(self._vel, odometry)
