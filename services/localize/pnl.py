@@ -71,7 +71,7 @@ import numpy as np
 from services.features.orb import OrbExtractor, OrbFeatures, OrbSettings, hamming, level_centres
 from services.geometry.blur import blur_length_px
 from services.geometry.camera import Camera
-from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, rate_changed, unroll_moving
+from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, depth_field, rate_changed, unroll_moving
 from services.geometry.se3 import Pose
 from services.kernels import optional_kernels
 from services.localize.carry import OdometryCarry
@@ -870,17 +870,14 @@ class PnlLocalizer:
         ident = Pose.identity()
         return blur_length_px(fr.camera, ident, ident.interpolate(self._vel, fr.exposure_fraction))
 
-    def _scene_depth(self, T_wc: Pose) -> float | None:
-        """The median depth (m) of the local landmarks in front of the camera at ``T_wc``: how far the scene is, for
-        the share of a rolling shutter's skew that the camera's travel makes."""
+    def _scene_depth(self, T_wc: Pose, camera: Camera) -> np.ndarray | None:
+        """How far the scene is over the frame of a camera at ``T_wc`` (rolling_shutter.depth_field of the local
+        landmarks), for the share of a rolling shutter's skew that the camera's travel makes."""
         self._local(T_wc)
-        Xc = (self._local_P - T_wc.t) @ T_wc.R
-        z = Xc[:, 2]
-        z = z[(z > 0.1) & (np.abs(Xc[:, 0]) < z) & (np.abs(Xc[:, 1]) < z)]  # within a 90 degree cone ahead
-        return float(np.median(z)) if len(z) else None
+        return depth_field((self._local_P - T_wc.t) @ T_wc.R, camera)
 
     def _unrolled_again(self, image: np.ndarray, camera: Camera, fr: _Frame, r, move: Pose, dt: float, readout: float,
-                        depth: float | None, tm: dict):
+                        depth: np.ndarray | None, tm: dict):
         """A rolling-shutter frame unrolled with the motion model's last motion, tracked to ``r``: when the motion
         from the last pose to ``r`` turns at a rate that would move the frame's edge rows by over half a pixel more,
         it is unrolled again with that motion and aligned from ``r``. The motion model lags a pan that speeds up:
@@ -1125,7 +1122,7 @@ class PnlLocalizer:
         move = motion if motion is not None else (self._vel if self.cfg.use_velocity else None)
         readout = self.cfg.readout_s if readout_s is None else float(readout_s)  # (per frame: the service's clients)
         unrolled = readout > 0 and prior is None and self.T_last is not None and move is not None
-        depth = self._scene_depth(self.T_last) if unrolled else None
+        depth = self._scene_depth(self.T_last, camera) if unrolled else None
         if unrolled:  # rows read while the camera moved: re-sampled into the middle row's view first
             fr.image = unroll_moving(fr.image, camera, move, dt, readout, depth)
         rs_settled = self.shutter.step(readout, unrolled, motion is not None)

@@ -68,7 +68,7 @@ from services.features.xfeat import Features, XFeatExtractor
 from services.geometry.blur import blur_length_px, motion_blur_linear
 from services.geometry.camera import Camera
 from services.geometry.pnp import PnpResult, solve_pnp
-from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, rate_changed, unroll_moving
+from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, depth_field, rate_changed, unroll_moving
 from services.geometry.se3 import Pose, yaw_sweep
 from services.localize.agreement import structure_agreement
 from services.localize.carry import OdometryCarry
@@ -250,7 +250,7 @@ class Keyframe:
     blurred: tuple | None = None  # (features, world points, normalised grey) of that blurred render
     direct: tuple | None = None  # (LandmarkPatches, world points, render pixels): corner patches, for direct tracking
     direct_blurred: LandmarkPatches | None = None  # the same corners' patches cut from the blurred render
-    median_depth: float | None = None  # of the render's measured depth (see RenderMatchTracker._scene_depth)
+    scene_points: np.ndarray | None = None  # world points of the render's measured depth (RenderMatchTracker._scene_depth)
 
 
 @dataclass
@@ -454,16 +454,18 @@ class RenderMatchTracker:
         self.carry = OdometryCarry(self.cfg.odometry_carry_s)  # ``T_last`` carried through LOST frames by the odometry
         self.odometry = OdometryCheck()  # whether the device's odometry agrees with the tracked motion (else unused)
 
-    def _scene_depth(self) -> float | None:
-        """The median depth (m) the current keyframe's render measured: how far the scene is, for the share of a
-        rolling shutter's skew that the camera's travel makes (it shrinks with distance)."""
-        if self.kf is None:
+    def _scene_depth(self, T_wc: Pose | None, camera: Camera) -> np.ndarray | None:
+        """How far the scene is over the frame of a camera at ``T_wc`` (rolling_shutter.depth_field of the points the
+        current keyframe's render measured, every 8th pixel): for the share of a rolling shutter's skew that the
+        camera's travel makes (it shrinks with distance)."""
+        if self.kf is None or T_wc is None:
             return None
-        if self.kf.median_depth is None:
-            d = self.kf.render.depth[::4, ::4]
-            d = d[d > 0]
-            self.kf.median_depth = float(np.median(d)) if len(d) else 0.0
-        return self.kf.median_depth or None
+        if self.kf.scene_points is None:
+            rnd = self.kf.render
+            v, u = np.mgrid[4:rnd.camera.height:8, 4:rnd.camera.width:8]
+            X, ok = rnd.backproject(np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+            self.kf.scene_points = X[ok]
+        return depth_field((self.kf.scene_points - T_wc.t) @ T_wc.R, camera)
 
     def _lose(self) -> None:
         self.kf: Keyframe | None = None
@@ -782,7 +784,8 @@ class RenderMatchTracker:
         D = self.T_last.inverse() @ r.T_wc
         if not rate_changed(*fr.motion, D, fr.dt_next, camera, readout):
             return r
-        redo = dataclasses.replace(fr, image=unroll_moving(image, camera, D, fr.dt_next, readout, self._scene_depth()),
+        redo = dataclasses.replace(fr, image=unroll_moving(image, camera, D, fr.dt_next, readout,
+                                                           self._scene_depth(r.T_wc, camera)),
                                    live={}, gray={})
         r2 = self._direct(self.kf, redo, r.T_wc)
         if not self._good(r2) or self._far(r2.T_wc, self.kf):
@@ -1237,7 +1240,8 @@ class RenderMatchTracker:
         readout = self.cfg.readout_s if readout_s is None else float(readout_s)
         unrolled = readout > 0 and fr.motion is not None
         if unrolled:  # rows read while the camera moved: undo that first
-            fr.image = unroll_moving(image, camera, *fr.motion, readout, self._scene_depth())
+            ahead = None if self.T_last is None else self.T_last @ fr.motion[0]  # (where the motion model puts the frame)
+            fr.image = unroll_moving(image, camera, *fr.motion, readout, self._scene_depth(ahead, camera))
         rs_settled = self.shutter.step(readout, unrolled, motion is not None)
         status = Status.TRACKING
         r: PnpResult | None = None
