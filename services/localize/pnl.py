@@ -1151,7 +1151,7 @@ class PnlLocalizer:
                     r = self._checked(fr, r, pred, tm)
                     if fr.relocalized:
                         status = Status.RELOCALIZED
-                        self.relocalizations += 1
+                        self.relocalizations += int(not fr.unchecked)  # (one not reported is no relocalization)
             if r is None:
                 r = self._track(fr, pred, self.cfg.coarse_radius_px, tm)
             if prior is None and not self._plausible(r) and self._vel is not None:  # velocity model failed: from the last pose, wider
@@ -1209,7 +1209,9 @@ class PnlLocalizer:
             unconfirmed = self._confirm(fr, T_wc)
             tm["confirm_ms"] = 1e3 * (time.perf_counter() - t0)
         if fr.unchecked and self._good(r, fr):  # tracked on from, reported once a relocalization agrees with a later frame
-            unconfirmed = "pose tracked from an untracked prediction not confirmed (neither keypoints nor a relocalization give a pose)"
+            unconfirmed = ("pose away from where the motion leads, and a relocalization disagrees with it (tracked on "
+                           "from the relocalization)" if fr.relocalized else
+                           "pose tracked from an untracked prediction not confirmed (neither keypoints nor a relocalization give a pose)")
         self._tracked = status == Status.TRACKING and prior is None
         if unconfirmed is not None or not self._good(r, fr) or not rs_settled:  # not reported, but tracked from
             self.T_last = T_wc
