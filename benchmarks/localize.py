@@ -11,6 +11,7 @@ Tracking accuracy and speed over the whole sequence: `cristal localize` (it prin
 from __future__ import annotations
 
 import argparse
+import ast
 import os
 import time
 from pathlib import Path
@@ -30,6 +31,17 @@ from services.relocalize.roi import sample_positions  # noqa: E402
 from services.render.renderer import Renderer  # noqa: E402
 
 
+def _setting(kv: str) -> tuple[str, object]:
+    """``NAME=VALUE`` as an RMConfig field and a Python literal (2.5, True, (12, 3)); a clear error otherwise."""
+    name, _, value = kv.partition("=")
+    if not hasattr(RMConfig(), name):
+        raise SystemExit(f"--set {kv}: RMConfig has no field {name!r}")
+    try:
+        return name, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        raise SystemExit(f"--set {kv}: {value!r} is not a Python literal") from None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--site", default="runs/bench-sim/office")
@@ -40,7 +52,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="an RMConfig field for this run (repeatable): a variant measured against the default")
     args = ap.parse_args()
-    cfg = RMConfig(**{k: type(getattr(RMConfig(), k))(v) for k, v in (kv.split("=", 1) for kv in args.set)})
+    cfg = RMConfig(**dict(_setting(kv) for kv in args.set))
     torch.set_num_threads(1)
     site = ensure_site(args.site)
     scan = load_scan(site / "scan.ply")
