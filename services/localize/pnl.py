@@ -1122,7 +1122,7 @@ class PnlLocalizer:
         move = motion if motion is not None else (self._vel if self.cfg.use_velocity else None)
         readout = self.cfg.readout_s if readout_s is None else float(readout_s)  # (per frame: the service's clients)
         unrolled = readout > 0 and prior is None and self.T_last is not None and move is not None
-        depth = self._scene_depth(self.T_last, camera) if unrolled else None
+        depth = self._scene_depth(self.T_last @ move, camera) if unrolled else None  # (where the motion leads)
         if unrolled:  # rows read while the camera moved: re-sampled into the middle row's view first
             fr.image = unroll_moving(fr.image, camera, move, dt, readout, depth)
         rs_settled = self.shutter.step(readout, unrolled, motion is not None)
