@@ -47,7 +47,7 @@ def unroll(image: np.ndarray, camera: Camera, omega: np.ndarray, readout_s: floa
     computed on a grid of ``grid_px`` cells and interpolated bilinearly (it is smooth: a hundredth of a pixel from the
     exact one at 8 px cells)."""
     omega = np.asarray(omega, np.float64).reshape(3)
-    travels = velocity is not None and depth_m is not None and np.any(velocity)
+    travels = velocity is not None and depth_m is not None and bool(np.any(velocity)) and bool(np.all(depth_m))
     if readout_s <= 0 or not (np.any(omega) or travels):
         return image
     H, W = camera.height, camera.width
@@ -57,7 +57,7 @@ def unroll(image: np.ndarray, camera: Camera, omega: np.ndarray, readout_s: floa
     uv = np.stack([u.ravel(), v.ravel()], axis=1)
     rays = np.concatenate([camera.undistort_points(uv), np.ones((len(uv), 1))], axis=1)  # the middle row's view
     src_v = uv[:, 1].copy()
-    if velocity is not None and depth_m is not None and np.ndim(depth_m) == 2:  # the depth in each cell's direction
+    if travels and np.ndim(depth_m) == 2:  # the depth in each cell's direction
         g = np.asarray(depth_m, np.float64)
         iy = np.clip((uv[:, 1] + 0.5) * g.shape[0] / H, 0, g.shape[0] - 1).astype(int)
         ix = np.clip((uv[:, 0] + 0.5) * g.shape[1] / W, 0, g.shape[1] - 1).astype(int)
@@ -65,7 +65,7 @@ def unroll(image: np.ndarray, camera: Camera, omega: np.ndarray, readout_s: floa
     for _ in range(2):  # the source row decides its time: one fixed-point step is within a hundredth of a pixel
         R = _rotations(omega, row_time(src_v, H, readout_s))  # row camera -> middle-row camera
         X = np.einsum("nji,nj->ni", R, rays)  # R^T r: the direction in the row's camera
-        if velocity is not None and depth_m is not None and np.all(depth_m):
+        if travels:
             X = X * depth_m - row_time(src_v, H, readout_s)[:, None] * np.asarray(velocity, np.float64)[None, :]
         src, _ = camera.project(X)
         src_v = np.clip(src[:, 1], 0, H - 1)
