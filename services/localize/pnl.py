@@ -75,6 +75,7 @@ from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, depth_fi
 from services.geometry.se3 import Pose
 from services.kernels import optional_kernels
 from services.localize.carry import OdometryCarry
+from services.localize.innovation import within_motion
 from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
 from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only,
@@ -536,15 +537,14 @@ class PnlLocalizer:
         return r
 
     def _consistent(self, r, pred: Pose, dt: float) -> bool:
-        """Whether a pose aligned from the constant-velocity prediction ``pred`` is within ``innovation_sigmas`` of it
-        (this pose's 1-sigma and the prediction's, about sqrt(3) x the last pose's) plus a hard acceleration's
-        a dt^2 / 2, as Render & Match's tracked poses must be. Further off, the pose corrected the track or slid off it."""
-        sigma = float(np.sqrt(r[4] ** 2 + 3.0 * self._sigma_last ** 2))
-        bound = self.cfg.innovation_sigmas * sigma + 0.5 * self.cfg.innovation_accel_mps2 * dt * dt
-        off = float(np.linalg.norm(-r[0].T @ r[1] - pred.t))
-        if off > bound:
+        """Whether a pose aligned from the constant-velocity prediction ``pred`` is where the motion could have taken the
+        camera (services.localize.innovation), as Render & Match's tracked poses must be. Further off, the pose
+        corrected the track or slid off it."""
+        ok, off, bound = within_motion(-r[0].T @ r[1], pred.t, r[4], self._sigma_last, dt, self.cfg.innovation_sigmas,
+                                       self.cfg.innovation_accel_mps2)
+        if not ok:
             log.debug("aligned pose %.1f cm from the prediction (bound %.1f cm): checked", 100 * off, 100 * bound)
-        return off <= bound
+        return ok
 
     def _spare(self, fr: _Frame, r):
         """The frame's tracking result, or its spare aligned solution (``fr.spare``) where that is more certain than a

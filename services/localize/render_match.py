@@ -72,6 +72,7 @@ from services.geometry.rolling_shutter import NOT_UNDONE, ShutterTrack, depth_fi
 from services.geometry.se3 import Pose, yaw_sweep
 from services.localize.agreement import structure_agreement
 from services.localize.carry import OdometryCarry
+from services.localize.innovation import within_motion
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
 from services.localize.odometry_check import OdometryCheck
 from services.localize.status import Status
@@ -967,18 +968,15 @@ class RenderMatchTracker:
                 and r.sigma_t_m <= self.cfg.max_sigma_m * coarse * factor and r.sigma_r_deg <= self.cfg.max_sigma_deg * coarse * factor)
 
     def _consistent(self, r: PnpResult, predicted: Pose | None, dt: float) -> bool:
-        """Whether a tracked pose is where the motion model could have taken the camera: within
-        ``innovation_sigmas`` of the prediction (this pose's uncertainty, and the prediction's: about sqrt(3) x
-        the last pose's, as it extrapolates from two of them) plus a hard acceleration's ``a dt^2 / 2``.
-        Catches a wrong pose whose own uncertainty looks fine (matches that agree on the wrong place)."""
+        """Whether a tracked pose is where the motion model could have taken the camera
+        (services.localize.innovation, ``innovation_sigmas`` and ``innovation_accel_mps2``)."""
         if predicted is None:
             return True
-        sigma = float(np.sqrt(r.sigma_t_m ** 2 + 3.0 * self.sigma_last ** 2))
-        bound = self.cfg.innovation_sigmas * sigma + 0.5 * self.cfg.innovation_accel_mps2 * dt * dt
-        off = float(np.linalg.norm(r.T_wc.t - predicted.t))
-        if off > bound:
+        ok, off, bound = within_motion(r.T_wc.t, predicted.t, r.sigma_t_m, self.sigma_last, dt,
+                                       self.cfg.innovation_sigmas, self.cfg.innovation_accel_mps2)
+        if not ok:
             log.debug("tracked pose %.1f cm from the prediction (bound %.1f cm): not reported", 100 * off, 100 * bound)
-        return off <= bound
+        return ok
 
     def _far(self, T: Pose, kf: Keyframe) -> bool:
         dt, dr = T.distance_to(kf.T_wc)
