@@ -33,3 +33,16 @@ def test_quiet_keeps_info_off_stderr():
     r = _run("-q", "router", "--listen", endpoint(port), "--duration", "0.2")
     assert r.returncode == 0 and "INFO" not in r.stderr
     assert json.loads(r.stdout.strip().splitlines()[-1])["router"]
+
+
+def test_a_file_that_is_no_database_is_named_so(tmp_path):
+    from services.relocalize.database import RelocDB
+
+    ply = tmp_path / "scan.ply"  # what a user passes by mistake: the scan itself, or a text file
+    ply.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nend_header\n")
+    try:
+        RelocDB.load(ply)
+    except ValueError as e:
+        assert "not a relocalization database" in str(e) and "build-db" in str(e)
+    else:
+        raise AssertionError("a PLY loaded as a database")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -211,6 +212,8 @@ class RelocDB:
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"{path}: no relocalization database (build one with 'cristal build-db')")
+        if not zipfile.is_zipfile(path):  # (np.load would read a scan or a text file as a pickle it refuses)
+            raise ValueError(f"{path}: not a relocalization database (an .npz from 'cristal build-db')")
         try:
             with np.load(path) as z:
                 meta = json.loads(str(z["meta"]))
