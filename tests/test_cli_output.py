@@ -46,3 +46,22 @@ def test_a_file_that_is_no_database_is_named_so(tmp_path):
         assert "not a relocalization database" in str(e) and "build-db" in str(e)
     else:
         raise AssertionError("a PLY loaded as a database")
+
+
+def test_every_command_line_argument_says_what_it_is_for():
+    import argparse
+
+    from services.cli import build_parser
+
+    silent = []
+
+    def walk(p, name):
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for n, sp in a.choices.items():
+                    walk(sp, f"{name} {n}")
+            elif not isinstance(a, argparse._HelpAction) and not a.help:
+                silent.append(f"{name} {'/'.join(a.option_strings) or a.dest}")
+
+    walk(build_parser(), "cristal")
+    assert not silent, f"arguments without a help text: {silent}"

@@ -888,3 +888,16 @@ def test_a_velocity_made_of_a_correction_is_not_carried(pnl_site, pnl_map, caplo
     jumped = [c for k in (0.02, 0.03) for c in carried[k] if c[0]]
     assert len(jumped) >= 10 and not any(v for _, v in jumped), carried
     assert not off and reported >= 0.8 * trials, (reported, trials, off)
+
+
+def test_the_report_gates_given_on_the_command_line_reach_the_light_localizer():
+    from services.cli import build_parser
+    from services.localize.pnl import PnlConfig
+    from services.localize.pnl_cli import pnl_config
+
+    base = ["localize", "map", "seq", "--method", "pnl", "--map", "map", "--out", "t.txt"]
+    d, cfg = PnlConfig(), pnl_config(build_parser().parse_args(base))
+    assert (cfg.max_sigma_m, cfg.max_sigma_deg, cfg.kp_max_sigma_deg) == (d.max_sigma_m, d.max_sigma_deg, d.kp_max_sigma_deg)
+    cfg = pnl_config(build_parser().parse_args(base + ["--max-sigma-deg", "0.2", "--max-sigma-cm", "3"]))
+    assert cfg.max_sigma_deg == 0.2 and abs(cfg.max_sigma_m - 0.03) < 1e-12
+    assert abs(cfg.kp_max_sigma_deg - 2 * d.kp_max_sigma_deg) < 1e-12 and abs(cfg.kp_max_sigma_m - 3 * d.kp_max_sigma_m) < 1e-12

@@ -28,8 +28,8 @@ def register(sub) -> None:
     p.add_argument("--map", dest="map_dir", metavar="MAPDIR", help="P&L map for the local fallback (path, or where to download it)")
     p.add_argument("--camera", help="camera.json (for a live camera or a video without one)")
     p.add_argument("--client-id", help="this device's id (default: random)")
-    p.add_argument("--site", default="default")
-    p.add_argument("--map-id", default="default")
+    p.add_argument("--site", default="default", help="site id the server serves (key scope, default 'default')")
+    p.add_argument("--map-id", default="default", help="map id within the site (key scope, default 'default')")
     p.add_argument("--rolling-shutter", type=float, default=0.0, metavar="MS",
                    help="the camera's rolling-shutter readout, first row to last, in ms (phones: 10-30; default 0, a "
                         "global shutter): the server and the local fallback undo it from the tracked motion")

@@ -44,7 +44,7 @@ def register(sub) -> None:
     b = sub.add_parser("build-db", help="build the relocalization database of a scan (XFeat on cubemap renders)",
                        description="Build the Render & Match relocalization database.", epilog=DB_EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    b.add_argument("scan")
+    b.add_argument("scan", help="scan file (.ply .e57 .las .laz)")
     b.add_argument("--out", required=True, help="database file (.npz)")
     b.add_argument("--spacing", type=float, default=1.0, help="metres between positions (default 1.0)")
     b.add_argument("--heights", type=float, nargs="+", default=[1.5], help="camera heights above the floor (default 1.5)")
@@ -55,14 +55,15 @@ def register(sub) -> None:
     b.add_argument("--face-size", type=int, default=320,
                    help="pixels per 90-degree cubemap face (default 320; 480 relocalizes close-ups better, but in a sparse "
                         "scan of identical rack bays it matched a bay 4 m on)")
-    b.add_argument("--faces", choices=["horizontal", "all"], default="horizontal")
-    b.add_argument("--device", default="auto")
+    b.add_argument("--faces", choices=["horizontal", "all"], default="horizontal",
+                   help="cubemap faces rendered at each position: the 4 horizontal ones (default) or all 6 (floor and ceiling too)")
+    b.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
     b.set_defaults(func=run_build_db)
 
     p = sub.add_parser("localize", help="localize a camera sequence in a scan (writes a TUM trajectory)",
                        description="Localize every frame of a sequence in the scan's frame.", epilog=LOC_EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scan")
+    p.add_argument("scan", help="scan file (.ply .e57 .las .laz); with --method pnl the map folder will do")
     p.add_argument("sequence", help="sequence folder (rgb.txt + camera.json) or video file")
     p.add_argument("--method", choices=["rm", "pnl"], default="rm",
                    help="rm: Render & Match (needs --db); pnl: Prebuild & Localize against a prebuilt map (needs --map)")
@@ -70,11 +71,11 @@ def register(sub) -> None:
     p.add_argument("--map", help="map folder from 'cristal prebuild' (--method pnl); the scan argument may then be the map too")
     p.add_argument("--out", required=True, help="output TUM trajectory")
     p.add_argument("--frames", type=int, help="only the first N frames")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
     p.add_argument("--max-side", type=int, help="XFeat input size (default: 480 on the CPU, full size on CUDA)")
     p.add_argument("--max-sigma-deg", type=float, default=0.1,
-                   help="(--method rm) report a pose only if its predicted 1-sigma orientation error is below this "
-                        "(default 0.1; scaled up for cameras coarser than VGA); larger: more frames, less accurate")
+                   help="report a pose only if its predicted 1-sigma orientation error is below this (default 0.1; scaled "
+                        "up for cameras coarser than VGA); larger: more frames, less accurate")
     p.add_argument("--no-align", action="store_true",
                    help="(--method pnl) skip the landmark-patch alignment and direct tracking: keypoints only, as for a map "
                         "without patches (office: 2.3 cm / 0.34 deg at 18 ms a frame, against 0.6 cm / 0.06 deg at 9 ms)")
@@ -82,7 +83,7 @@ def register(sub) -> None:
                    help="track with features on every frame (XFeat for rm, ORB then patch alignment for pnl) instead of "
                         "aligning the frame to patches straight from the prediction first: slower; for comparisons")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
-                   help="(--method rm) the same for the camera centre, in centimetres (default 1)")
+                   help="the same for the camera centre, in centimetres (default 1)")
     p.add_argument("--supersample", type=int, metavar="K",
                    help="(--method rm) render keyframes at K times their resolution and pool them (default 2): the "
                         "scan's points land within 1/(2K) of a pixel, edges between them, and the frame aligns closer "
@@ -115,7 +116,7 @@ def register(sub) -> None:
                                    "than the intrinsics: 1 % of focal length and 3 px of principal point cost 4 cm / "
                                    "0.4 deg on the office walk, and the pose gates cannot see it. The lens distortion "
                                    "is kept as given.", epilog=CAL_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    c.add_argument("scan")
+    c.add_argument("scan", help="scan file (.ply .e57 .las .laz)")
     c.add_argument("sequence", help="sequence folder (rgb.txt + camera.json) or video file")
     c.add_argument("--db", required=True, help="relocalization database from 'cristal build-db'")
     c.add_argument("--camera", help="the camera to start from (camera.json; default: the sequence's)")
@@ -124,7 +125,7 @@ def register(sub) -> None:
     c.add_argument("--frames", type=int, help="only the first N frames")
     c.add_argument("--rounds", type=int, default=2, help="track-and-fit rounds (default 2)")
     c.add_argument("--distortion", action="store_true", help="fit the radial distortion k1 too (k2 and the rest kept as given)")
-    c.add_argument("--device", default="auto")
+    c.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
     c.set_defaults(func=run_calibrate)
 
 

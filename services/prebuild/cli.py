@@ -35,7 +35,7 @@ def register(sub) -> None:
     p = sub.add_parser("prebuild", help="build a stella_vslam map (ORB keyframes + landmarks) from the scan alone",
                        description="Prebuild & Localize: a drift-free stella_vslam map from renders of the scan.",
                        epilog=PREBUILD_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scan")
+    p.add_argument("scan", help="scan file (.ply .e57 .las .laz)")
     p.add_argument("--camera", required=True, help="camera.json of the camera that will localize (intrinsics, distortion)")
     p.add_argument("--out", required=True, help="map folder (map.msg + config.yaml)")
     p.add_argument("--spacing", type=float, default=1.0, help="metres between positions (default 1.0)")
@@ -53,7 +53,7 @@ def register(sub) -> None:
     p.add_argument("--decimate", type=float, metavar="FRACTION", help="use a random fraction of the scan's points")
     p.add_argument("--max-keypoints", type=int, default=2000, help="ORB keypoints per rendered view (default 2000)")
     p.add_argument("--legacy-keys", action="store_true", help="also write the keys OpenVSLAM <= 0.2.x reads")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
     p.set_defaults(func=run_prebuild)
 
     mp = sub.add_parser("map", help="stella_vslam map tools (check)", description="stella_vslam map tools.",

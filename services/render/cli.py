@@ -54,7 +54,8 @@ def register(sub) -> None:
     p.add_argument("--camera", required=True, help="camera.json (intrinsics, distortion)")
     p.add_argument("--out", required=True, help="output PNG")
     p.add_argument("--depth", help="also write the measured depth (metres, float32, 0 = none) as .npy")
-    p.add_argument("--stage", choices=["splat", "filter", "full"], default="full")
+    p.add_argument("--stage", choices=["splat", "filter", "full"], default="full",
+                   help="splat: points only; filter: background seen through holes removed; full: holes filled too (default)")
     p.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     p.add_argument("--compare", metavar="SITE", help="a simulated site folder: compare with its ground truth")
     p.set_defaults(func=run_render)
@@ -77,10 +78,10 @@ def register(sub) -> None:
                        description="Train the renderer's hole-filling network.", epilog=TRAIN_EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     t.add_argument("--out", required=True, help="weights file (.pt); a .json record is written beside it")
-    t.add_argument("--size", default="small", choices=["tiny", "small", "base"])
-    t.add_argument("--steps", type=int, default=1500)
+    t.add_argument("--size", default="small", choices=["tiny", "small", "base"], help="network width (default small, the shipped one)")
+    t.add_argument("--steps", type=int, default=1500, help="optimiser steps (default 1500)")
     t.add_argument("--samples", type=int, default=600, help="training views")
-    t.add_argument("--batch", type=int, default=8)
+    t.add_argument("--batch", type=int, default=8, help="views per step (default 8)")
     t.add_argument("--work", default="runs/train-renderer", help="folder for the simulated training sites")
     t.add_argument("--threads", type=int, default=2, help="torch threads")
     t.set_defaults(func=run_train)

@@ -53,11 +53,13 @@ def register(sub) -> None:
     s.add_argument("--map-id", default="default", help="map id (key scope, default 'default')")
     s.add_argument("--server-id", default="", help="this worker's id (default: random)")
     s.add_argument("--workers", type=int, default=1, help="frames processed in parallel (default 1)")
-    s.add_argument("--max-clients", type=int, default=64)
+    s.add_argument("--max-clients", type=int, default=64,
+                   help="clients tracked at once; one more is answered with a reason, not served (default 64)")
     s.add_argument("--idle", type=float, default=60.0, help="seconds before an idle client's state expires (default 60)")
     s.add_argument("--metrics-port", type=int, default=0, help="Prometheus exporter port (default 0: off; 9464 is usual)")
-    s.add_argument("--metrics-addr", default="127.0.0.1")
-    s.add_argument("--device", default="auto")
+    s.add_argument("--metrics-addr", default="127.0.0.1",
+                   help="address the Prometheus exporter listens on (default 127.0.0.1; 0.0.0.0 for a scraper on another host)")
+    s.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
     s.add_argument("--duration", type=float, help="stop after this many seconds (default: run until interrupted)")
     _zenoh_args(s, "server")
     s.set_defaults(func=run_serve)

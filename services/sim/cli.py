@@ -59,7 +59,8 @@ def register(sub) -> None:
     v.add_argument("--camera", required=True, help="camera.json")
     v.add_argument("--out", required=True, help="output PNG")
     v.add_argument("--depth", help="also write the z-depth (metres, float32) as .npy")
-    v.add_argument("--lighting", choices=["scan", "camera"], default="scan")
+    v.add_argument("--lighting", choices=["scan", "camera"], default="scan",
+                   help="scan: the colours the scanner recorded (what the renderer should reproduce; default); camera: the light the walk's camera saw")
     v.set_defaults(func=run_view)
 
 
