@@ -901,3 +901,22 @@ def test_the_report_gates_given_on_the_command_line_reach_the_light_localizer():
     cfg = pnl_config(build_parser().parse_args(base + ["--max-sigma-deg", "0.2", "--max-sigma-cm", "3"]))
     assert cfg.max_sigma_deg == 0.2 and abs(cfg.max_sigma_m - 0.03) < 1e-12
     assert abs(cfg.kp_max_sigma_deg - 2 * d.kp_max_sigma_deg) < 1e-12 and abs(cfg.kp_max_sigma_m - 3 * d.kp_max_sigma_m) < 1e-12
+
+
+def test_a_sequence_without_camera_json_is_localized_with_camera(pnl_site, pnl_map, tmp_path):
+    """A TUM RGB-D download has rgb.txt and images but no camera.json: the error says what to write or pass, and
+    --camera supplies it."""
+    import json
+    import shutil
+
+    root, out, _, _ = pnl_site
+    mapdir, _ = pnl_map
+    seq = tmp_path / "tum"
+    shutil.copytree(out / "seq", seq)
+    (seq / "camera.json").rename(tmp_path / "camera.json")
+    r = _cli("localize", mapdir, seq, "--method", "pnl", "--map", mapdir, "--out", tmp_path / "t.txt")
+    assert r.returncode != 0 and "no camera.json found" in r.stderr and "--camera" in r.stderr, r.stderr
+    r = _cli("localize", mapdir, seq, "--method", "pnl", "--map", mapdir, "--out", tmp_path / "t.txt",
+             "--camera", tmp_path / "camera.json")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1])["localized"] >= 7

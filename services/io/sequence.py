@@ -176,7 +176,8 @@ def _find_camera(candidates: list[Path]) -> Camera:
     for c in candidates:
         if c.exists():
             return Camera.load(c)
-    raise SequenceError(f"no camera.json found (looked for {', '.join(str(c) for c in candidates)})")
+    raise SequenceError(f"no camera.json found (looked for {', '.join(str(c) for c in candidates)}); write one "
+                        '({"width", "height", "fx", "fy", "cx", "cy", "distortion": [k1, k2, p1, p2, k3]}) or pass --camera')
 
 
 def _fitted(cam: Camera, width: int, height: int, source: Path) -> Camera:

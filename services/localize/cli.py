@@ -70,6 +70,8 @@ def register(sub) -> None:
     p.add_argument("--db", help="relocalization database from 'cristal build-db' (--method rm)")
     p.add_argument("--map", help="map folder from 'cristal prebuild' (--method pnl); the scan argument may then be the map too")
     p.add_argument("--out", required=True, help="output TUM trajectory")
+    p.add_argument("--camera", help="camera.json to use instead of the sequence's own (a TUM RGB-D download has none; "
+                                    "'cristal calibrate' writes a refined one)")
     p.add_argument("--frames", type=int, help="only the first N frames")
     p.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
     p.add_argument("--max-side", type=int, help="XFeat input size (default: 480 on the CPU, full size on CUDA)")
@@ -260,6 +262,7 @@ def run_localize(args) -> int:
         return run_localize_pnl(args)
     if not args.db:
         raise CliError("--method rm needs --db (a relocalization database from 'cristal build-db')")
+    from services.geometry.camera import Camera
     from services.io.scans import load_scan
     from services.io.sequence import open_sequence
     from services.io.trajectory import read_odometry
@@ -269,7 +272,7 @@ def run_localize(args) -> int:
     from services.render.renderer import Renderer
 
     _torch_threads()
-    seq = open_sequence(args.sequence)
+    seq = open_sequence(args.sequence, camera=Camera.load(args.camera) if args.camera else None)
     odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes) if args.odometry else None
     db = RelocDB.load(args.db)
     scan = load_scan(args.scan)

@@ -28,6 +28,7 @@ def pnl_config(args):
 
 def run_localize_pnl(args) -> int:
     from services.cli import CliError
+    from services.geometry.camera import Camera
     from services.io.sequence import open_sequence
     from services.io.trajectory import read_odometry
     from services.localize.pnl import PnlLocalizer
@@ -41,7 +42,7 @@ def run_localize_pnl(args) -> int:
         import cv2
 
         cv2.setNumThreads(int(args.threads))  # -j 1: the one-core figure of benchmarks/RESULTS.md
-    seq = open_sequence(args.sequence)
+    seq = open_sequence(args.sequence, camera=Camera.load(args.camera) if getattr(args, "camera", None) else None)
     odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes) if getattr(args, "odometry", None) else None
     loc = PnlLocalizer.load(map_dir, pnl_config(args))
     if loc.patches is None:
