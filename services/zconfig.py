@@ -4,7 +4,8 @@ With no file and no endpoints: a server (or router) listens on ``tcp/127.0.0.1:7
 client connects there, so the commands work on one machine out of the box. A ``--zenoh-config``
 JSON5 file (zenoh 1.x format, examples in ``deploy/zenoh/``) is taken as is; explicit
 ``listen``/``connect`` endpoints are added on top of it. Multicast scouting is off unless the
-file turns it on: sessions find each other through the endpoints, never by surprise on a LAN.
+file turns it on: sessions find each other through the endpoints, never by surprise on a LAN. So is zenoh's
+shared-memory transport (see ``make_config``; the files in ``deploy/zenoh/`` turn it off too).
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ def make_config(path: str | Path | None = None, mode: str | None = None, listen:
     else:
         cfg = zenoh.Config()
         cfg.insert_json5("scouting/multicast/enabled", "false")
+        # zenoh 1.x sends payloads over 3 KB between processes on one host through a 16 MiB shared-memory pool per
+        # session, and the receiving side keeps each departed peer's pool mapped: a server took 16 MB more with every
+        # client that came and went (benchmarks/soak.py, RESULTS.md stop 54). Frames are ~40 KB JPEGs; copying is free
+        cfg.insert_json5("transport/shared_memory/enabled", "false")
         if not listen and not connect:
             if default_role == "client":
                 connect = [DEFAULT_ENDPOINT]
