@@ -5,9 +5,9 @@ client id; the server holds a tracker per client until it has been idle ``--idle
 ``cristal serve`` process (Render & Match) and, per round, ``--clients`` new clients (the real client library, each its
 own Zenoh session), each sending ``--frames`` consecutive frames of the site's walk from its own starting frame and
 waiting for every reply (a cold relocalization first, then tracking). After each round it waits for the idle expiry
-and reads the server's health (client states still held) and resident memory (VmRSS). A leak shows as memory that
-grows round after round, or client states that are never let go; the last line fits the growth per round over the
-rounds after the first (which includes the server's warm-up).
+and reads the server's health (client states still held), resident memory (VmRSS), threads and open files. A
+leak shows as memory, threads or files that grow round after round, or client states that are never let go; the
+last line fits the memory's growth per round over the rounds after the first (which includes the server's warm-up).
 
     python benchmarks/soak.py --site runs/bench-sim/office --rounds 12 --clients 3 --frames 15 --idle 3
 """
@@ -34,6 +34,11 @@ def _rss_mb(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def _threads_fds(pid: int) -> tuple[int, int]:
+    threads = next(int(x.split()[1]) for x in Path(f"/proc/{pid}/status").read_text().splitlines() if x.startswith("Threads:"))
+    return threads, len(os.listdir(f"/proc/{pid}/fd"))
 
 
 def _free_port() -> int:
@@ -114,6 +119,7 @@ def main() -> int:
                 h = probe.health("soak", timeout_s=5.0)
                 row = {"round": r + 1, "clients_so_far": (r + 1) * a.clients, **out, "round_s": round(busy_s, 1),
                        "held_after_idle": None if h is None else h.clients, "rss_mb": round(_rss_mb(srv.pid), 1)}
+                row["threads"], row["fds"] = _threads_fds(srv.pid)
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr, flush=True)
         finally:
@@ -124,11 +130,12 @@ def main() -> int:
     wall = time.perf_counter() - t_start
     print(f"{a.rounds} rounds x {a.clients} new clients x {a.frames} frames, idle expiry {a.idle:g} s, backend {a.backend}, device {a.device}, "
           f"site {site}; {wall:.0f} s; server RSS once serving {rss_start:.0f} MB")
-    print("| round | clients so far | frames sent | poses | no reply | round s | client states held after idle | server RSS MB |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| round | clients so far | frames sent | poses | no reply | round s | client states held after idle | server RSS MB "
+          "| threads | open files |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for w in rows:
         print(f"| {w['round']} | {w['clients_so_far']} | {w['sent']} | {w['poses']} | {w['no_reply']} | {w['round_s']} | "
-              f"{w['held_after_idle']} | {w['rss_mb']:.0f} |")
+              f"{w['held_after_idle']} | {w['rss_mb']:.0f} | {w['threads']} | {w['fds']} |")
     if len(rows) >= 3:
         x = np.array([w["round"] for w in rows[1:]], float)
         y = np.array([w["rss_mb"] for w in rows[1:]], float)
