@@ -49,3 +49,16 @@ def test_a_server_keeps_no_memory_of_clients_that_came_and_went():
     finally:
         server.kill()
         server.wait(10)
+
+
+def test_the_server_can_hand_freed_heap_back_to_the_system():
+    """The server's janitor trims the C heap every ServerConfig.trim_every_s (glibc's malloc_trim): a long-running
+    server's RSS then follows what it holds, not what it once held."""
+    import platform
+
+    from services.server.service import ServerConfig, _heap_trimmer
+
+    assert ServerConfig().trim_every_s > 0
+    trim = _heap_trimmer()
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert trim is not None and trim(0) in (0, 1)
