@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -27,24 +26,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-
-def _rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+from service import _free_port, _rss_mb  # noqa: E402  (benchmarks/service.py: the same server, N steady clients)
 
 
 def _threads_fds(pid: int) -> tuple[int, int]:
     threads = next(int(x.split()[1]) for x in Path(f"/proc/{pid}/status").read_text().splitlines() if x.startswith("Threads:"))
     return threads, len(os.listdir(f"/proc/{pid}/fd"))
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _walk(port: int, cid: str, seq, start: int, n: int, out: dict, lock: threading.Lock) -> None:
