@@ -270,7 +270,6 @@ class LocalizationServer:
 
         c, s = self.cfg, None
         self.session = s = open_session(self.zconf)
-        self.pub_cache: dict[str, object] = {}
         self._decl.append(s.declare_queryable(keys.frame_queryable(c.site, c.server_id), self._on_frame))
         self._decl.append(s.declare_queryable(keys.info(c.site, c.map_id), self._on_info))
         self._decl.append(s.declare_queryable(keys.health(c.site, c.map_id, c.server_id), self._on_health))
