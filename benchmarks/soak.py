@@ -64,6 +64,9 @@ def main() -> int:
     ap.add_argument("--device", default="auto", help="the server's device: cpu, cuda or auto")
     ap.add_argument("--backend", choices=["rm", "pnl"], default="rm",
                     help="the server's localizer: rm (Render & Match, SITE/reloc.npz) or pnl (SITE/map)")
+    ap.add_argument("--router", action="store_true",
+                    help="the production topology: a 'cristal router' that the server and every client connect to (its "
+                         "memory is reported too), instead of clients connecting to the server directly")
     ap.add_argument("--seed", type=int, default=0, help="draw of the clients' starting frames")
     ap.add_argument("--json", help="write the rows here too")
     a = ap.parse_args()
@@ -77,8 +80,15 @@ def main() -> int:
     port = _free_port()
     env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
     inputs = ["--db", str(site / "reloc.npz")] if a.backend == "rm" else ["--backend", "pnl", "--map", str(site / "map")]
+    ep = f"tcp/127.0.0.1:{port}"
+    router = None
+    if a.router:  # (its first stdout line says it listens)
+        router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", ep],
+                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+        router.stdout.readline()
+        threading.Thread(target=router.stdout.read, daemon=True).start()
     srv = subprocess.Popen([sys.executable, "-m", "services.cli", "serve", str(site / "scan.ply"), *inputs,
-                            "--listen", f"tcp/127.0.0.1:{port}", "--server-id", "soak", "--device", a.device,
+                            "--connect" if a.router else "--listen", ep, "--server-id", "soak", "--device", a.device,
                             "--idle", str(a.idle), "--max-clients", "64"],
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
     rows, t_start = [], time.perf_counter()
@@ -107,6 +117,9 @@ def main() -> int:
                 row = {"round": r + 1, "clients_so_far": (r + 1) * a.clients, **out, "round_s": round(busy_s, 1),
                        "held_after_idle": None if h is None else h.clients, "rss_mb": round(_rss_mb(srv.pid), 1)}
                 row["threads"], row["fds"] = _threads_fds(srv.pid)
+                if router is not None:
+                    row["router_rss_mb"] = round(_rss_mb(router.pid), 1)
+                    row["router_threads"], row["router_fds"] = _threads_fds(router.pid)
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr, flush=True)
         finally:
@@ -114,15 +127,21 @@ def main() -> int:
     finally:
         srv.terminate()
         srv.wait(10)
+        if router is not None:
+            router.terminate()
+            router.wait(10)
     wall = time.perf_counter() - t_start
     print(f"{a.rounds} rounds x {a.clients} new clients x {a.frames} frames, idle expiry {a.idle:g} s, backend {a.backend}, device {a.device}, "
+          f"{'through a router, ' if a.router else ''}"
           f"site {site}; {wall:.0f} s; server RSS once serving {rss_start:.0f} MB")
+    extra = " router RSS MB | router threads | router open files |" if a.router else ""
     print("| round | clients so far | frames sent | poses | no reply | round s | client states held after idle | server RSS MB "
-          "| threads | open files |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "| threads | open files |" + extra)
+    print("|---:" * (10 + 3 * a.router) + "|")
     for w in rows:
+        more = f" {w['router_rss_mb']:.0f} | {w['router_threads']} | {w['router_fds']} |" if a.router else ""
         print(f"| {w['round']} | {w['clients_so_far']} | {w['sent']} | {w['poses']} | {w['no_reply']} | {w['round_s']} | "
-              f"{w['held_after_idle']} | {w['rss_mb']:.0f} | {w['threads']} | {w['fds']} |")
+              f"{w['held_after_idle']} | {w['rss_mb']:.0f} | {w['threads']} | {w['fds']} |" + more)
     if len(rows) >= 3:
         x = np.array([w["round"] for w in rows[1:]], float)
         y = np.array([w["rss_mb"] for w in rows[1:]], float)
