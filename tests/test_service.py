@@ -16,7 +16,7 @@ from _zenoh import config, endpoint, free_port, wait_until
 
 from protocol import PROTOCOL_VERSION, keys
 from protocol.codec import decode, encode
-from protocol.messages import ErrorCode, FrameRequest, ImageEncoding, Intrinsics, PoseReply, Status
+from protocol.messages import ErrorCode, FrameRequest, ImageEncoding, Intrinsics, PoseMsg, PoseReply, Status
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -459,3 +459,44 @@ def test_a_prior_sent_with_a_frame_the_server_skipped_reaches_the_next_tracked_f
     dt, dr = gt[4].distance_to(seen[0][1])  # frame 2's prior, moved by the motions of frames 3 and 4
     assert dt < 1e-6 and dr < 1e-4, (dt, dr)
     assert results[4].status is Status.TRACKING, results[4]  # from the prior: no relocalization
+
+
+def test_a_full_server_gives_a_long_silent_client_s_place_to_a_newcomer(rm_backend, small_site):
+    """max_clients held: a newcomer is refused while every client is streaming, and takes the place of the one
+    silent longest once it has been silent evict_silent_s (a device that restarted under a new id, a headset put
+    down), instead of waiting idle_s for it to expire."""
+    from services.client.client import LocalizationClient
+    from services.io.sequence import open_sequence
+    from services.server.service import LocalizationServer, ServerConfig
+
+    seq = open_sequence(small_site[0] / "seq_00")
+    jpg, intr = seq.files[0].read_bytes(), Intrinsics(**seq.camera.to_dict())
+    port = free_port()
+    cfg = ServerConfig(site="lab", map_id="office", server_id="full", max_clients=2, idle_s=60, evict_silent_s=4.0)
+    srv = LocalizationServer(rm_backend, cfg, config(listen=[endpoint(port)])).start()
+    clients = {cid: LocalizationClient(config(connect=[endpoint(port)]), client_id=cid, site="lab", map_id="office",
+                                       deadline_ms=10000) for cid in ("a", "b", "c")}
+    seqs = dict.fromkeys(clients, 0)
+    prior = PoseMsg.from_tum(seq.groundtruth.poses[0].to_tum())  # (tracked, not relocalized: quick)
+
+    def send(cid):
+        seqs[cid] += 1
+        req = FrameRequest(client=cid, seq=seqs[cid], image=jpg, intrinsics=intr, prior=prior, reset=True)
+        return clients[cid].request_raw(encode(req), "full", 20.0)
+
+    try:
+        assert all(cl.wait_for_server(10) for cl in clients.values())
+        assert send("a").error is None and send("b").error is None
+        r = send("c")  # both just spoke
+        assert r.status is Status.REJECTED and r.error is ErrorCode.OVERLOADED and "2 clients" in r.reason
+        time.sleep(2.5)
+        assert send("b").error is None  # b speaks again: a is now the one silent longest
+        time.sleep(2.0)
+        r = send("c")  # a silent over 4 s (b maybe too, if the box is slow, but a longer): a's place
+        assert r.error is None, r
+        assert set(srv.clients) == {"b", "c"}
+        assert clients["a"].health("full").clients == 2
+    finally:
+        for cl in clients.values():
+            cl.close()
+        srv.close()

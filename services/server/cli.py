@@ -56,6 +56,9 @@ def register(sub) -> None:
     s.add_argument("--max-clients", type=int, default=64,
                    help="clients tracked at once; one more is answered with a reason, not served (default 64)")
     s.add_argument("--idle", type=float, default=60.0, help="seconds before an idle client's state expires (default 60)")
+    s.add_argument("--evict-after", type=float, default=5.0, metavar="S",
+                   help="when --max-clients are held, a new client takes the place of the one silent longest if it has "
+                        "been silent S seconds (default 5; 0: refuse newcomers until a state expires)")
     s.add_argument("--metrics-port", type=int, default=0, help="Prometheus exporter port (default 0: off; 9464 is usual)")
     s.add_argument("--metrics-addr", default="127.0.0.1",
                    help="address the Prometheus exporter listens on (default 127.0.0.1; 0.0.0.0 for a scraper on another host)")
@@ -108,8 +111,8 @@ def run_serve(args) -> int:
 
         torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     cfg = ServerConfig(site=args.site, map_id=args.map_id, server_id=args.server_id, workers=args.workers,
-                       max_clients=args.max_clients, idle_s=args.idle, metrics_port=args.metrics_port,
-                       metrics_addr=args.metrics_addr)
+                       max_clients=args.max_clients, idle_s=args.idle, evict_silent_s=args.evict_after,
+                       metrics_port=args.metrics_port, metrics_addr=args.metrics_addr)
     zc = make_config(args.zenoh_config, listen=args.listen, connect=args.connect, default_role="server")
     backend = load_backend(args.backend, args.scan, args.db, args.map_dir, args.device)
     srv = LocalizationServer(backend, cfg, zc, bundle_dir=args.map_dir)

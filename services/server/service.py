@@ -17,8 +17,8 @@ Flow of a frame::
                   ─► backend tracker (per client) ─► reply pose/lost, publish on pose/<client>
 
 Work is bounded: per client one frame in flight and one waiting, at most ``max_clients``
-clients (more are rejected ``overloaded`` so they move to another worker), and a client idle
-for ``idle_s`` loses its state. Errors are values: every request gets exactly one reply and an
+clients (a newcomer takes the place of one silent for ``evict_silent_s``, else it is rejected
+``overloaded`` so it moves to another worker), and a client idle for ``idle_s`` loses its state. Errors are values: every request gets exactly one reply and an
 exception in one client's frame becomes ``rejected/internal`` for that frame only.
 """
 
@@ -62,6 +62,9 @@ class ServerConfig:
     workers: int = 1  # frames processed in parallel (different clients); 1 on a CPU box, more on a GPU
     max_clients: int = 64
     idle_s: float = 60.0  # client state expires after this long without a frame
+    evict_silent_s: float = 5.0  # when full, a new client takes the place of the one silent longest, if this long
+    #                              (a streaming client sends several frames a second; apps that restart under a new id
+    #                              would otherwise lock newcomers out until idle_s). 0: never, newcomers are refused
     max_request_bytes: int = MAX_REQUEST_BYTES
     metrics_port: int = 0  # Prometheus exporter (0: off)
     metrics_addr: str = "127.0.0.1"
@@ -389,7 +392,12 @@ class LocalizationServer:
         old = None
         with self.lock:
             c = self.clients.get(req.client)
+            evicted = None
             if c is None:
+                if len(self.clients) >= self.cfg.max_clients:
+                    evicted = self._silent_longest(time.time())
+                    if evicted is not None:
+                        del self.clients[evicted]
                 if len(self.clients) >= self.cfg.max_clients:
                     c = None
                 else:
@@ -408,6 +416,9 @@ class LocalizationServer:
                     if not c.busy and not c.queued:
                         c.queued = True
                         self.ready.put(req.client)
+        if evicted is not None:
+            _event(logging.INFO, "client_evicted", client=evicted, by=req.client,
+                   why=f"server full ({self.cfg.max_clients} clients) and it was silent longest")
         if c is None:
             self._reject(query, req.client, req.seq, Status.REJECTED, ErrorCode.OVERLOADED,
                          f"this server already serves {self.cfg.max_clients} clients; use another worker")
@@ -508,6 +519,14 @@ class LocalizationServer:
         if status is Status.LOST or c.frames == 1 or status is Status.RELOCALIZED:
             _event(logging.INFO, "frame", client=req.client, seq=req.seq, status=status.value, inliers=rep.inliers,
                    total_ms=round(tm["total_ms"], 1))
+
+    def _silent_longest(self, now: float) -> str | None:
+        """The client silent longest, if for at least ``evict_silent_s`` and with no frame in hand (under the lock)."""
+        if self.cfg.evict_silent_s <= 0:
+            return None
+        idle = [(c.last_seen, cid) for cid, c in self.clients.items()
+                if now - c.last_seen >= self.cfg.evict_silent_s and not c.busy and c.pending is None and not c.queued]
+        return min(idle)[1] if idle else None
 
     def _janitor(self) -> None:
         trim = _heap_trimmer() if self.cfg.trim_every_s > 0 else None
