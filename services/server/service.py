@@ -18,8 +18,9 @@ Flow of a frame::
 
 Work is bounded: per client one frame in flight and one waiting, at most ``max_clients``
 clients (a newcomer takes the place of one silent for ``evict_silent_s``, else it is rejected
-``overloaded`` so it moves to another worker), and a client idle for ``idle_s`` loses its state. Errors are values: every request gets exactly one reply and an
-exception in one client's frame becomes ``rejected/internal`` for that frame only.
+``overloaded`` so it moves to another worker), and a client idle for ``idle_s`` loses its state.
+Errors are values: every request gets exactly one reply and an exception in one client's frame
+becomes ``rejected/internal`` for that frame only.
 """
 
 from __future__ import annotations
@@ -421,7 +422,8 @@ class LocalizationServer:
                    why=f"server full ({self.cfg.max_clients} clients) and it was silent longest")
         if c is None:
             self._reject(query, req.client, req.seq, Status.REJECTED, ErrorCode.OVERLOADED,
-                         f"this server already serves {self.cfg.max_clients} clients; use another worker")
+                         f"this server already serves {self.cfg.max_clients} clients, none silent for "
+                         f"{self.cfg.evict_silent_s:g} s; use another worker")
             return
         if old is not None:
             q_old, r_old = old
