@@ -422,8 +422,9 @@ class LocalizationServer:
                    why=f"server full ({self.cfg.max_clients} clients) and it was silent longest")
         if c is None:
             self._reject(query, req.client, req.seq, Status.REJECTED, ErrorCode.OVERLOADED,
-                         f"this server already serves {self.cfg.max_clients} clients, none silent for "
-                         f"{self.cfg.evict_silent_s:g} s; use another worker")
+                         f"this server already serves {self.cfg.max_clients} clients"
+                         + (f", none silent for {self.cfg.evict_silent_s:g} s" if self.cfg.evict_silent_s > 0 else "")
+                         + "; use another worker")
             return
         if old is not None:
             q_old, r_old = old
