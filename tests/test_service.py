@@ -375,6 +375,55 @@ def test_the_odometry_of_frames_the_server_skipped_reaches_the_next_tracked_fram
     assert prev == 10
 
 
+def test_the_odometry_of_a_frame_overtaken_on_the_way_reaches_the_next_tracked_frame(service, small_site):
+    """Frames 3, 2, 4 arrive in that order while the worker is busy (a client's threads, the network): 2 is older than
+    the waiting 3 and is dropped, but its motion (since 1, the last tracked) is what 3's and 4's are composed after, so
+    frame 4 is tracked with the motion since frame 1. Dropped with it, 4 would be predicted a frame's motion short."""
+    import cv2
+
+    from protocol.messages import PoseMsg
+    from services.io.sequence import open_sequence
+
+    srv, cl, port, _ = service
+    seq = open_sequence(small_site[0] / "seq_00")
+    gt = seq.groundtruth.poses
+    intr = Intrinsics(**seq.camera.to_dict())
+    jpg = [cv2.imencode(".jpg", seq.read(i).image)[1].tobytes() for i in range(6)]
+
+    def req(i):
+        return _req(client="late", seq=i, image=jpg[i], intrinsics=intr, stamp=float(seq.stamps[i]),
+                    motion=PoseMsg.from_tum((gt[i - 1].inverse() @ gt[i]).to_tum()))
+
+    assert cl.request_raw(encode(req(1)), "w0", 20.0, client_key="late").status.has_pose
+    results = {}
+    with _seen_by_tracker(srv, "late") as seen:
+
+        def fire(i):
+            results[i] = cl.request_raw(encode(req(i)), "w0", 20.0, client_key="late")
+
+        def other(k):  # cold relocalizations of three other clients, queued first, keep the one worker busy meanwhile
+            results[f"other{k}"] = cl.request_raw(encode(_req(client=f"late-other{k}", seq=1, image=jpg[k],
+                                                              intrinsics=intr)), "w0", 20.0, client_key=f"late-other{k}")
+
+        threads = []
+        for k in range(3):
+            threads.append(threading.Thread(target=other, args=(k,)))
+            threads[-1].start()
+            time.sleep(0.01)
+        for i in (3, 2, 4):
+            threads.append(threading.Thread(target=fire, args=(i,)))
+            threads[-1].start()
+            time.sleep(0.04)
+        for th in threads:
+            th.join(30)
+    for k in range(3):
+        results.pop(f"other{k}")
+    assert results[2].status is Status.DROPPED and results[3].status is Status.DROPPED, results
+    assert results[4].status is not Status.DROPPED and len(seen) == 1, (results, seen)
+    dt, dr = (gt[1].inverse() @ gt[4]).distance_to(seen[0][2])
+    assert dt < 1e-6 and dr < 1e-4, (dt, dr)
+
+
 def test_a_streamed_frame_after_unreadable_ones_carries_their_odometry(small_site):
     """`cristal stream` does not send a frame whose file is missing or broken: the next frame's motion is since the
     last frame sent (the unsent ones' composed in front of its own), unknown if any of them had none."""

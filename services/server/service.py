@@ -408,7 +408,11 @@ class LocalizationServer:
                 c.last_seen = time.time()
                 newest = max(c.last_seq, c.pending[1].seq if c.pending is not None else -1)
                 if req.seq <= newest and not req.reset:
-                    old = (query, req)  # (out of order: its motion is older than what was tracked since)
+                    old = (query, req)  # (out of order: older than a frame tracked or waiting)
+                    if req.seq > c.last_seq and c.pending is not None:
+                        # newer than the last tracked frame, overtaken by the waiting one on the way (a client's
+                        # threads, the network): its motion belongs in front of those carried to the waiting frame
+                        c.carry.untake(_pose(req.motion), False, None)
                 else:
                     old = c.pending[:2] if c.pending is not None else None
                     if old is not None:
