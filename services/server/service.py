@@ -149,48 +149,40 @@ def _pose(msg) -> Pose | None:
 class _Carry:
     """What a client's frames that were not tracked (superseded, past their deadline, undecodable) hand to the next
     frame that is. A frame's ``motion`` is since the frame sent before it, so the next tracked frame gets the skipped
-    ones' composed in front of its own (one without any breaks the chain: None then); a skipped reset is done, a
-    skipped prior is used, carried on by the motions after it. A frame rejected on arrival, before it could be pending
-    (bad intrinsics, an undecodable message), hands on nothing. Used under the server's lock, in arrival order."""
+    ones' composed in front of its own, in the order they were sent (their ``seq``: a frame may arrive after a newer
+    one overtook it on the way); one without a motion breaks the chain (None then). A skipped reset is done, a skipped
+    prior is used, carried on by the motions after it. A frame rejected on arrival, before it could be pending
+    (bad intrinsics, an undecodable message), hands on nothing. Used under the server's lock."""
 
-    motion: Pose | None = None  # the skipped frames' motions, composed in order
-    unknown: bool = False  # one of them had none
-    reset: bool = False
-    prior: Pose | None = None  # the newest skipped prior, moved on by the motions after it where they are known
+    skipped: list = field(default_factory=list)  # (seq, motion | None, reset, prior | None) of each frame not tracked
 
-    @classmethod
-    def of(cls, motion: Pose | None, reset: bool, prior: Pose | None) -> "_Carry":
-        """One frame's."""
-        return cls(motion, motion is None, reset, prior)
-
-    def then(self, after: "_Carry") -> None:
-        """The frames of ``after`` were skipped after those here."""
-        self.reset |= after.reset
-        if after.unknown:
-            self.motion, self.unknown = None, True
-        elif after.motion is not None and not self.unknown:
-            self.motion = after.motion if self.motion is None else self.motion @ after.motion
-        if after.prior is not None:
-            self.prior = after.prior
-        elif self.prior is not None and after.motion is not None:
-            self.prior = self.prior @ after.motion
+    def add(self, seq: int, motion: Pose | None, reset: bool, prior: Pose | None) -> None:
+        """A frame not tracked (or, from :meth:`take`'s result, a taken one given back: its motion is then since the
+        last tracked frame, and every frame skipped before it is in it)."""
+        self.skipped.append((seq, motion, reset, prior))
 
     def take(self, req: FrameRequest) -> tuple[Pose | None, bool, Pose | None]:
         """(motion since the last tracked frame, reset, prior) for ``req``, taken to be tracked; empties the carry."""
+        motion, unknown, reset, prior = None, False, False, None
+        for _, m, r, p in sorted(self.skipped, key=lambda e: e[0]):
+            reset |= r
+            if m is None:
+                motion, unknown = None, True
+            elif not unknown:
+                motion = m if motion is None else motion @ m
+            if p is not None:
+                prior = p
+            elif prior is not None and m is not None:
+                prior = prior @ m
+        self.skipped = []
         own = _pose(req.motion)
-        reset = req.reset or self.reset
-        motion = None if self.unknown or reset or own is None else (own if self.motion is None else self.motion @ own)
-        prior = _pose(req.prior)
-        if prior is None and self.prior is not None:
-            prior = self.prior @ own if own is not None else self.prior
-        self.motion, self.unknown, self.reset, self.prior = None, False, False, None
+        reset = req.reset or reset
+        motion = None if unknown or reset or own is None else (own if motion is None else motion @ own)
+        if _pose(req.prior) is not None:
+            prior = _pose(req.prior)
+        elif prior is not None:
+            prior = prior @ own if own is not None else prior
         return motion, reset, prior
-
-    def untake(self, motion: Pose | None, reset: bool, prior: Pose | None) -> None:
-        """A taken frame was not tracked after all: it goes back in front of the frames skipped since it was taken."""
-        front = _Carry.of(motion, reset, prior)
-        front.then(self)
-        self.motion, self.unknown, self.reset, self.prior = front.motion, front.unknown, front.reset, front.prior
 
 
 @dataclass
@@ -412,11 +404,11 @@ class LocalizationServer:
                     if req.seq > c.last_seq and c.pending is not None:
                         # newer than the last tracked frame, overtaken by the waiting one on the way (a client's
                         # threads, the network): its motion belongs in front of those carried to the waiting frame
-                        c.carry.untake(_pose(req.motion), False, None)
+                        c.carry.add(req.seq, _pose(req.motion), False, None)
                 else:
                     old = c.pending[:2] if c.pending is not None else None
                     if old is not None:
-                        c.carry.then(_Carry.of(_pose(old[1].motion), old[1].reset, _pose(old[1].prior)))
+                        c.carry.add(old[1].seq, _pose(old[1].motion), old[1].reset, _pose(old[1].prior))
                     c.pending = (query, req, cam, t0, decode_ms)
                     if not c.busy and not c.queued:
                         c.queued = True
@@ -475,7 +467,7 @@ class LocalizationServer:
         tm = {"decode_ms": decode_ms, "queue_ms": queue_ms}
         if req.deadline_ms is not None and queue_ms > req.deadline_ms:
             with self.lock:
-                c.carry.untake(motion, reset, prior)
+                c.carry.add(req.seq, motion, reset, prior)
             self._reject(query, req.client, req.seq, Status.DROPPED, ErrorCode.DEADLINE,
                          f"waited {queue_ms:.0f} ms, over the frame's deadline of {req.deadline_ms:.0f} ms",
                          req.stamp, req.stamp_text, tm)
@@ -486,7 +478,7 @@ class LocalizationServer:
             tm["image_ms"] = 1e3 * (time.perf_counter() - t1)
         except _Rejected as e:
             with self.lock:
-                c.carry.untake(motion, reset, prior)
+                c.carry.add(req.seq, motion, reset, prior)
             self._reject(query, req.client, req.seq, Status.REJECTED, e.code, e.reason, req.stamp, req.stamp_text)
             return
         if c.tracker is None:
