@@ -178,10 +178,10 @@ class _Carry:
         own = _pose(req.motion)
         reset = req.reset or reset
         motion = None if unknown or reset or own is None else (own if motion is None else motion @ own)
-        if _pose(req.prior) is not None:
+        if req.prior is not None:
             prior = _pose(req.prior)
-        elif prior is not None:
-            prior = prior @ own if own is not None else prior
+        elif prior is not None and own is not None:
+            prior = prior @ own
         return motion, reset, prior
 
 
@@ -198,6 +198,10 @@ class _Client:
     frames: int = 0
     carry: _Carry = field(default_factory=_Carry)  # what frames not tracked hand to the next that is
     untimed: bool = False  # whether the log has said that its frames come without capture times
+
+    def silent_for(self, now: float) -> float:
+        """Seconds since its last frame arrived; -inf while it has a frame in hand (being tracked or waiting)."""
+        return float("-inf") if self.busy or self.pending is not None else now - self.last_seen
 
 
 class LocalizationServer:
@@ -401,7 +405,7 @@ class LocalizationServer:
                 newest = max(c.last_seq, c.pending[1].seq if c.pending is not None else -1)
                 if req.seq <= newest and not req.reset:
                     old = (query, req)  # (out of order: older than a frame tracked or waiting)
-                    if req.seq > c.last_seq and c.pending is not None:
+                    if req.seq > c.last_seq:
                         # newer than the last tracked frame, overtaken by the waiting one on the way (a client's
                         # threads, the network): its motion belongs in front of those carried to the waiting frame
                         c.carry.add(req.seq, _pose(req.motion), False, None)
@@ -523,8 +527,7 @@ class LocalizationServer:
         """The client silent longest, if for at least ``evict_silent_s`` and with no frame in hand (under the lock)."""
         if self.cfg.evict_silent_s <= 0:
             return None
-        idle = [(c.last_seen, cid) for cid, c in self.clients.items()
-                if now - c.last_seen >= self.cfg.evict_silent_s and not c.busy and c.pending is None and not c.queued]
+        idle = [(c.last_seen, cid) for cid, c in self.clients.items() if c.silent_for(now) >= self.cfg.evict_silent_s]
         return min(idle)[1] if idle else None
 
     def _janitor(self) -> None:
@@ -536,8 +539,7 @@ class LocalizationServer:
                 trim(0)
                 trimmed = time.monotonic()
             with self.lock:
-                gone = [cid for cid, c in self.clients.items()
-                        if now - c.last_seen > self.cfg.idle_s and not c.busy and c.pending is None]
+                gone = [cid for cid, c in self.clients.items() if c.silent_for(now) > self.cfg.idle_s]
                 for cid in gone:
                     del self.clients[cid]
                 n = len(self.clients)
