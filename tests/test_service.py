@@ -378,7 +378,8 @@ def test_the_odometry_of_frames_the_server_skipped_reaches_the_next_tracked_fram
 def test_the_odometry_of_a_frame_overtaken_on_the_way_reaches_the_next_tracked_frame(service, small_site):
     """Frames 3, 2, 4 arrive in that order while the worker is busy (a client's threads, the network): 2 is older than
     the waiting 3 and is dropped, but its motion (since 1, the last tracked) is what 3's and 4's are composed after, so
-    frame 4 is tracked with the motion since frame 1. Dropped with it, 4 would be predicted a frame's motion short."""
+    frame 4 is tracked with the motion since frame 1. Dropped with it, 4 would be predicted a frame's motion short.
+    Frame 2 also carries a prior (where the device knows it was): it reaches frame 4 moved on by 3's and 4's motions."""
     import cv2
 
     from protocol.messages import PoseMsg
@@ -392,7 +393,8 @@ def test_the_odometry_of_a_frame_overtaken_on_the_way_reaches_the_next_tracked_f
 
     def req(i):
         return _req(client="late", seq=i, image=jpg[i], intrinsics=intr, stamp=float(seq.stamps[i]),
-                    motion=PoseMsg.from_tum((gt[i - 1].inverse() @ gt[i]).to_tum()))
+                    motion=PoseMsg.from_tum((gt[i - 1].inverse() @ gt[i]).to_tum()),
+                    prior=PoseMsg.from_tum(gt[i].to_tum()) if i == 2 else None)
 
     assert cl.request_raw(encode(req(1)), "w0", 20.0, client_key="late").status.has_pose
     results = {}
@@ -421,6 +423,9 @@ def test_the_odometry_of_a_frame_overtaken_on_the_way_reaches_the_next_tracked_f
     assert results[2].status is Status.DROPPED and results[3].status is Status.DROPPED, results
     assert results[4].status is not Status.DROPPED and len(seen) == 1, (results, seen)
     dt, dr = (gt[1].inverse() @ gt[4]).distance_to(seen[0][2])
+    assert dt < 1e-6 and dr < 1e-4, (dt, dr)
+    assert seen[0][1] is not None, "frame 2's prior was lost with it"
+    dt, dr = gt[4].distance_to(seen[0][1])
     assert dt < 1e-6 and dr < 1e-4, (dt, dr)
 
 

@@ -407,8 +407,9 @@ class LocalizationServer:
                     old = (query, req)  # (out of order: older than a frame tracked or waiting)
                     if req.seq > c.last_seq:
                         # newer than the last tracked frame, overtaken by the waiting one on the way (a client's
-                        # threads, the network): its motion belongs in front of those carried to the waiting frame
-                        c.carry.add(req.seq, _pose(req.motion), False, None)
+                        # threads, the network): its motion belongs in front of those carried to the waiting frame, and
+                        # its prior is moved on by them (a reset frame is never overtaken: it always waits)
+                        c.carry.add(req.seq, _pose(req.motion), False, _pose(req.prior))
                 else:
                     old = c.pending[:2] if c.pending is not None else None
                     if old is not None:
