@@ -1267,7 +1267,20 @@ class RenderMatchTracker:
             T_pred, fr.centred = centred or T_pred, centred is not None
             kf = self.kf
             direct = self.cfg.direct_points > 0
-            if kf is None or kf.frame_camera != camera or self._far(T_pred, kf) or centred is not None:
+            stale = kf is None or kf.frame_camera != camera or self._far(T_pred, kf) or centred is not None
+            if not stale and direct:
+                r = self._direct(kf, fr, T_pred)  # no XFeat on the frame while the prediction is close
+                if self._good(r) and self._far(r.T_wc, kf):
+                    # the frame went past the re-render distance that its prediction had not: a new render where the
+                    # alignment put it. Matched by XFeat against the old render instead, the pose was drawn back
+                    # towards it (the office path at 320x240, frame 56: 4.9 cm / 0.65 deg off at a predicted 0.7 cm /
+                    # 0.09 deg, where the far direct pose was 0.9 cm off; the next two frames then refused)
+                    T_pred, stale, r = r.T_wc, True, None
+                elif not self._good(r):
+                    r = None
+                else:
+                    r = self._checked(r, kf, fr)
+            if stale:
                 new_kf = None
                 # a new render, tracked into directly (XFeat only if that fails): after a tracked frame, or from where
                 # the odometry carried a LOST one (its frames in a whip pan were XFeat's alone, too blurred to report)
@@ -1289,13 +1302,6 @@ class RenderMatchTracker:
                         r = again if self._plausible(again) else r
                 rerendered = True
             else:
-                r = None
-                if direct:
-                    r = self._direct(kf, fr, T_pred)  # no XFeat on the frame while the prediction is close
-                    if not self._good(r) or self._far(r.T_wc, kf):
-                        r = None
-                    else:
-                        r = self._checked(r, kf, fr)
                 if r is None:
                     r = self._match(kf, fr, T_pred)
                     if not self._good(r) or self._far(r.T_wc, kf) or r.n_inliers < self.cfg.rerender_inlier_ratio * kf.ref_inliers:
