@@ -39,6 +39,15 @@ SITES: dict[str, tuple[list[str], list[str], list[str]]] = {
     "office-rs20": (["--preset", "office", "--rolling-shutter", "20"], [], []),
     # a narrow 52-degree lens (stop 50): through a doorway at a wall 7.4 m off, a sideways step looks like a turn
     "office-s21-narrow": (["--preset", "office", "--seed", "21", "--hfov", "52"], [], []),
+    # other cameras on the office path (stops 26-27 probed them by hand; recipes since stop 55): a phone held upright, a
+    # robot's QVGA camera
+    "office-portrait": (["--preset", "office", "--seed", "1", "--frames", "150", "--width", "480", "--height", "640",
+                         "--hfov", "50"], [], []),
+    "office-qvga": (["--preset", "office", "--seed", "1", "--frames", "150", "--width", "320", "--height", "240"], [], []),
+    # sites no stop had seen before stop 55: a 60-degree lens with mild barrel distortion; the default camera
+    "office-s37-60": (["--preset", "office", "--seed", "37", "--hfov", "60", "--distortion", "-0.08", "0.02", "0", "0",
+                       "0"], [], []),
+    "office-s44": (["--preset", "office", "--seed", "44"], [], []),
     # its map takes ~45 min on 2 cores (RESULTS stop 33): --maps builds it only when --sites names it
     "warehouse-s3": (["--preset", "warehouse", "--seed", "3"], ["--spacing", "2"], ["--spacing", "2"]),
 }
