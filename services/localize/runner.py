@@ -147,7 +147,8 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
         summary["odometry_unused_frames"] = unused
     if why:
         head = "lost in the pass in time order: " if back is not None else "lost: "
-        print(head + ", ".join(f"{v} {k}" for k, v in sorted(why.items(), key=lambda kv: -kv[1])))
+        print(head + ", ".join(f"{v} {k}" for k, v in sorted(why.items(), key=lambda kv: -kv[1]))
+              + " (what each means and what helps: docs/TROUBLESHOOTING.md)")
         summary["lost_reasons"] = why
     if seq.groundtruth is not None and len(traj):
         from services.eval.ape import ape_first_frames
