@@ -903,6 +903,28 @@ def test_the_report_gates_given_on_the_command_line_reach_the_light_localizer():
     assert abs(cfg.kp_max_sigma_deg - 2 * d.kp_max_sigma_deg) < 1e-12 and abs(cfg.kp_max_sigma_m - 3 * d.kp_max_sigma_m) < 1e-12
 
 
+def test_the_report_gates_given_to_cristal_serve_reach_every_client_s_tracker(pnl_map):
+    """`cristal serve --max-sigma-cm/--max-sigma-deg/--min-agreement` set the gates of the trackers the server makes
+    per client (before, the server always ran the defaults): the P&L backend loaded from a real map, the R&M
+    backend's configuration as the command builds it."""
+    from services.cli import build_parser
+    from services.localize.render_match import RMConfig
+    from services.server.backend import load_backend
+    from services.server.cli import backend_configs
+
+    mapdir, _ = pnl_map
+    gates = ["--max-sigma-deg", "0.2", "--max-sigma-cm", "3", "--min-agreement", "0.45"]
+    args = build_parser().parse_args(["serve", "--backend", "pnl", "--map", str(mapdir), *gates])
+    backend = load_backend(args.backend, args.scan, args.db, args.map_dir, "cpu", *backend_configs(args))
+    cfg = backend.make().cfg
+    assert cfg.max_sigma_deg == 0.2 and abs(cfg.max_sigma_m - 0.03) < 1e-12
+    rm, pnl = backend_configs(build_parser().parse_args(["serve", "scan.ply", "--db", "db.npz", *gates]))
+    assert pnl is None and (rm.max_sigma_deg, rm.reloc_min_agreement) == (0.2, 0.45) and abs(rm.max_sigma_m - 0.03) < 1e-12
+    d, _ = backend_configs(build_parser().parse_args(["serve", "scan.ply", "--db", "db.npz"]))
+    assert (d.max_sigma_m, d.max_sigma_deg, d.reloc_min_agreement) == (RMConfig().max_sigma_m, RMConfig().max_sigma_deg,
+                                                                         RMConfig().reloc_min_agreement)
+
+
 def test_a_sequence_without_camera_json_is_localized_with_camera(pnl_site, pnl_map, tmp_path):
     """A TUM RGB-D download has rgb.txt and images but no camera.json: the error says what to write or pass, and
     --camera supplies it."""

@@ -38,6 +38,27 @@ it. Ends with a one-line JSON summary.
 """
 
 
+
+def add_gate_arguments(p: argparse.ArgumentParser) -> None:
+    """The report gates, shared by ``cristal localize`` and ``cristal serve``: what a pose must meet to be reported
+    (docs/TROUBLESHOOTING.md: 'pose too uncertain to report', 'render disagrees with the frame')."""
+    p.add_argument("--max-sigma-deg", type=float, default=0.1,
+                   help="report a pose only if its predicted 1-sigma orientation error is below this (default 0.1; scaled "
+                        "up for cameras coarser than VGA); larger: more frames, less accurate")
+    p.add_argument("--max-sigma-cm", type=float, default=1.0,
+                   help="the same for the camera centre, in centimetres (default 1)")
+    p.add_argument("--min-agreement", type=float, default=0.6, metavar="A",
+                   help="(rm) a relocalization far from the last pose, or cold, needs its render to agree with the frame "
+                        "this well (gradient correlation, -1..1; default 0.6; true places score 0.74-0.92 in the simulator's "
+                        "office walks, identical aisles 8 m over 0.64-0.86): lower it if a real site's cold starts are "
+                        "refused 'render disagrees with the frame'")
+
+
+def rm_gates(args) -> dict:
+    """RMConfig's fields for the gates of :func:`add_gate_arguments`."""
+    return dict(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
+                reloc_min_agreement=args.min_agreement)
+
 def register(sub) -> None:
     from services.cli import add_odometry_args
 
@@ -75,17 +96,13 @@ def register(sub) -> None:
     p.add_argument("--frames", type=int, help="only the first N frames")
     p.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
     p.add_argument("--max-side", type=int, help="XFeat input size (default: 480 on the CPU, full size on CUDA)")
-    p.add_argument("--max-sigma-deg", type=float, default=0.1,
-                   help="report a pose only if its predicted 1-sigma orientation error is below this (default 0.1; scaled "
-                        "up for cameras coarser than VGA); larger: more frames, less accurate")
+    add_gate_arguments(p)
     p.add_argument("--no-align", action="store_true",
                    help="(--method pnl) skip the landmark-patch alignment and direct tracking: keypoints only, as for a map "
                         "without patches (office: 2.3 cm / 0.34 deg at 18 ms a frame, against 0.6 cm / 0.06 deg at 9 ms)")
     p.add_argument("--no-direct", action="store_true",
                    help="track with features on every frame (XFeat for rm, ORB then patch alignment for pnl) instead of "
                         "aligning the frame to patches straight from the prediction first: slower; for comparisons")
-    p.add_argument("--max-sigma-cm", type=float, default=1.0,
-                   help="the same for the camera centre, in centimetres (default 1)")
     p.add_argument("--supersample", type=int, metavar="K",
                    help="(--method rm) render keyframes at K times their resolution and pool them (default 2): the "
                         "scan's points land within 1/(2K) of a pixel, edges between them, and the frame aligns closer "
@@ -277,7 +294,7 @@ def run_localize(args) -> int:
     db = RelocDB.load(args.db)
     scan = load_scan(args.scan)
     renderer = Renderer(scan, device=args.device)
-    cfg = RMConfig(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
+    cfg = RMConfig(**rm_gates(args),
                    direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points,
                    readout_s=getattr(args, "rolling_shutter", 0.0) / 1000.0,
                    keyframe_supersample=getattr(args, "supersample", None) or RMConfig().keyframe_supersample)

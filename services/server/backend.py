@@ -70,24 +70,25 @@ class RMBackend:
         self.plan = None  # the scan's floor plan, one for every client's tracker (built in warm_up)
 
     @classmethod
-    def load(cls, scan_path: str | Path, db_path: str | Path, device: str = "auto", max_side: int | None = None) -> "RMBackend":
+    def load(cls, scan_path: str | Path, db_path: str | Path, device: str = "auto", max_side: int | None = None,
+             cfg=None) -> "RMBackend":
         from services.io.scans import load_scan
         from services.relocalize.database import RelocDB
         from services.render.renderer import Renderer
 
         db = RelocDB.load(db_path)
         scan = load_scan(scan_path)
-        return cls.from_loaded(scan, Renderer(scan, device=device), db, max_side)
+        return cls.from_loaded(scan, Renderer(scan, device=device), db, max_side, cfg)
 
     @classmethod
-    def from_loaded(cls, scan, renderer, db, max_side: int | None = None) -> "RMBackend":
+    def from_loaded(cls, scan, renderer, db, max_side: int | None = None, cfg=None) -> "RMBackend":
         """Over a scan, renderer and database already in memory (``cristal demo`` shares them with its build steps)."""
         from services.features.xfeat import XFeatExtractor
 
         if max_side is None:
             max_side = None if renderer.device.type == "cuda" else 480
         ext = XFeatExtractor(device=str(renderer.device), top_k=1024, max_side=max_side)
-        backend = cls(scan, renderer, ext, db)
+        backend = cls(scan, renderer, ext, db, cfg)
         backend.warm_up()
         return backend
 
@@ -142,11 +143,11 @@ class PnlBackend:
 
     name = "pnl"
 
-    def __init__(self, map_dir: str | Path):
+    def __init__(self, map_dir: str | Path, cfg=None):
         from services.localize.pnl import PnlConfig, PnlLocalizer  # issue 5
 
         self.map_dir = Path(map_dir)
-        self._cls, self._cfg = PnlLocalizer, PnlConfig()
+        self._cls, self._cfg = PnlLocalizer, cfg or PnlConfig()
         self._proto = PnlLocalizer.load(self.map_dir, self._cfg)
 
     def make(self):
@@ -163,13 +164,15 @@ class PnlBackend:
         return {}
 
 
-def load_backend(kind: str, scan: str | None, db: str | None, map_dir: str | None, device: str = "auto"):
+def load_backend(kind: str, scan: str | None, db: str | None, map_dir: str | None, device: str = "auto",
+                 rm_cfg=None, pnl_cfg=None):
+    """A backend by name; ``rm_cfg`` (RMConfig) / ``pnl_cfg`` (PnlConfig): its trackers' settings, else the defaults."""
     if kind == "rm":
         if not scan or not db:
             raise ValueError("the rm backend needs a scan and --db")
-        return RMBackend.load(scan, db, device=device)
+        return RMBackend.load(scan, db, device=device, cfg=rm_cfg)
     if kind == "pnl":
         if not map_dir:
             raise ValueError("the pnl backend needs --map")
-        return PnlBackend(map_dir)
+        return PnlBackend(map_dir, pnl_cfg)
     raise ValueError(f"unknown backend {kind!r} (rm or pnl)")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from services.localize.cli import add_gate_arguments, rm_gates
+
 ROUTER_EPILOG = """\
 examples:
   cristal router                                       listen on tcp/127.0.0.1:7447 (servers and clients connect here)
@@ -25,6 +27,17 @@ Several servers may serve the same --site/--map-id: connect them all to one rout
 ('cristal router' or zenohd) and clients spread over them and fail over between them.
 Key expressions: see protocol/keys.py and the README's Service section.
 """
+
+
+def backend_configs(args) -> tuple:
+    """(RMConfig, PnlConfig) of ``cristal serve``'s report gates: each client's tracker meets them (the backend's)."""
+    from services.localize.pnl_cli import pnl_config
+
+    if args.backend == "rm":
+        from services.localize.render_match import RMConfig
+
+        return RMConfig(**rm_gates(args)), None
+    return None, pnl_config(args)
 
 
 def _zenoh_args(p, role: str) -> None:
@@ -63,6 +76,7 @@ def register(sub) -> None:
     s.add_argument("--metrics-addr", default="127.0.0.1",
                    help="address the Prometheus exporter listens on (default 127.0.0.1; 0.0.0.0 for a scraper on another host)")
     s.add_argument("--device", default="auto", help="cpu, cuda or auto (default: cuda when available)")
+    add_gate_arguments(s)
     s.add_argument("--duration", type=float, help="stop after this many seconds (default: run until interrupted)")
     _zenoh_args(s, "server")
     s.set_defaults(func=run_serve)
@@ -114,7 +128,7 @@ def run_serve(args) -> int:
                        max_clients=args.max_clients, idle_s=args.idle, evict_silent_s=args.evict_after,
                        metrics_port=args.metrics_port, metrics_addr=args.metrics_addr)
     zc = make_config(args.zenoh_config, listen=args.listen, connect=args.connect, default_role="server")
-    backend = load_backend(args.backend, args.scan, args.db, args.map_dir, args.device)
+    backend = load_backend(args.backend, args.scan, args.db, args.map_dir, args.device, *backend_configs(args))
     srv = LocalizationServer(backend, cfg, zc, bundle_dir=args.map_dir)
     srv.start()
     try:
