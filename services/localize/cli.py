@@ -38,7 +38,6 @@ it. Ends with a one-line JSON summary.
 """
 
 
-
 def add_gate_arguments(p: argparse.ArgumentParser) -> None:
     """The report gates, shared by ``cristal localize`` and ``cristal serve``: what a pose must meet to be reported
     (docs/TROUBLESHOOTING.md: 'pose too uncertain to report', 'render disagrees with the frame')."""
@@ -58,6 +57,7 @@ def rm_gates(args) -> dict:
     """RMConfig's fields for the gates of :func:`add_gate_arguments`."""
     return dict(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
                 reloc_min_agreement=args.min_agreement)
+
 
 def register(sub) -> None:
     from services.cli import add_odometry_args
