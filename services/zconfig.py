@@ -3,17 +3,21 @@
 With no file and no endpoints: a server (or router) listens on ``tcp/127.0.0.1:7447`` and a
 client connects there, so the commands work on one machine out of the box. A ``--zenoh-config``
 JSON5 file (zenoh 1.x format, examples in ``deploy/zenoh/``) is taken as is; explicit
-``listen``/``connect`` endpoints are added on top of it. Multicast scouting is off unless the
-file turns it on: sessions find each other through the endpoints, never by surprise on a LAN. So is zenoh's
-shared-memory transport (see ``make_config``; the files in ``deploy/zenoh/`` turn it off too).
+``listen``/``connect`` endpoints are added on top of it. Without a file, multicast scouting is off
+(sessions find each other through the endpoints, never by surprise on a LAN) and so is zenoh's
+shared-memory transport (see ``make_config``); every file in ``deploy/zenoh/`` turns both off, and a
+file that leaves shared memory on is taken as is, with a warning.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 from protocol.keys import DEFAULT_ENDPOINT
+
+log = logging.getLogger(__name__)
 
 __all__ = ["make_config", "open_session"]
 
@@ -31,6 +35,10 @@ def make_config(path: str | Path | None = None, mode: str | None = None, listen:
             cfg = zenoh.Config.from_file(str(p))
         except Exception as e:  # zenoh raises ZError with the parser's message
             raise ValueError(f"{p}: not a valid zenoh configuration ({e})") from None
+        if cfg.get_json("transport/shared_memory/enabled") == "true":
+            log.warning("%s leaves zenoh's shared-memory transport on (its default): a long-running process then keeps "
+                        "16 MiB and an open file for every same-host peer that came and went; deploy/zenoh/ turns it off "
+                        "(transport: { shared_memory: { enabled: false } })", p)
     else:
         cfg = zenoh.Config()
         cfg.insert_json5("scouting/multicast/enabled", "false")

@@ -243,3 +243,22 @@ def test_every_deploy_file_loads_and_its_commands_parse():
             _parses(c["args"])
     sts = next(d for d in docs if d["kind"] == "StatefulSet")
     assert sts["spec"]["template"]["spec"]["containers"][0]["resources"]["limits"]["nvidia.com/gpu"] == 1
+
+
+def test_a_zenoh_file_that_leaves_shared_memory_on_is_warned_about(tmp_path, caplog):
+    """A site's own --zenoh-config is taken as is, but one that leaves zenoh's shared-memory transport on (its default)
+    gets a warning: a long-running server then keeps 16 MiB and an open file per same-host client that left (stop 54).
+    The deploy files turn it off and get none."""
+    import logging
+
+    from services.zconfig import make_config
+
+    f = tmp_path / "mine.json5"
+    f.write_text('{ mode: "peer" }\n')
+    with caplog.at_level(logging.WARNING, logger="services.zconfig"):
+        make_config(f)
+        assert any("shared-memory" in r.getMessage() for r in caplog.records), caplog.text
+        caplog.clear()
+        for p in sorted((Path(__file__).resolve().parents[1] / "deploy" / "zenoh").glob("*.json5")):
+            make_config(p)
+        assert not caplog.records, caplog.text
