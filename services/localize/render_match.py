@@ -146,6 +146,7 @@ class RMConfig:
     #                                          aisle 38 m off with 111 inliers; the top 33 views held one place with half
     #                                          that, the top 83 three (a periodic site), and the true place none
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
+    verify_renders_kept: int = 6  # renders of recent verifications kept while LOST, for the next frame's (_reusable)
     reloc_xfeat_sigma_t: float = 2.0  # a relocalized or re-acquired pose that no direct alignment replaced (XFeat's own) has its
     #                                  position 1-sigma taken this many times larger: XFeat poses err 1.7-4.9x their
     #                                  scatter, most along the view in far scenes (warehouse seed 3, aisles ~10 m deep:
@@ -447,6 +448,7 @@ class RenderMatchTracker:
         self.recent: tuple[Pose, float | None] | None = None  # last good pose and its stamp, kept while LOST
         self.anchor: _Anchor | None = None  # where the camera was last known to be (a reported pose or a caller's hint)
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
+        self.verify_kfs: list[Keyframe] = []  # renders made to verify relocalizations while LOST (newest last; _reusable)
         self.around: tuple[np.ndarray, Camera, RelocDB] | None = None  # views rendered by _look_around: (where, for which camera, them)
         self.around_best: tuple[float, Pose] | None = None  # the best coarse pose among them for this frame: (stamp, pose)
         self.around_prev: tuple[float, Pose] | None = None  # ... and for the frame before
@@ -884,12 +886,13 @@ class RenderMatchTracker:
         r.cov = self._blur_scaled(r.cov, length * self._base_scale(fr.camera) / r.px_factor)
         return r
 
-    def _reacquire(self, fr: _Frame, T: Pose, kf: Keyframe | None = None) -> PnpResult | None:
+    def _reacquire(self, fr: _Frame, T: Pose, kf: Keyframe | None = None, reuse: bool = False) -> PnpResult | None:
         """A pose for a frame without motion (relocalizing, or re-acquiring at the last good pose) from a rough one:
-        rendered at and matched until it settles (``kf``: a render at ``T`` already made), its blur read from the image
+        rendered at and matched until it settles (``kf``: a render at ``T`` already made; ``reuse``: a recent
+        verification's render near ``T`` will do for the first match, :meth:`_reusable`), its blur read from the image
         (:meth:`_reloc_blur`), then polished directly. Where no direct alignment replaced XFeat's pose, its position
         covariance is scaled by ``reloc_xfeat_sigma_t``^2."""
-        x = self._render_and_refine(fr, T, self.cfg.reloc_refine_rounds, kf=kf)
+        x = self._render_and_refine(fr, T, self.cfg.reloc_refine_rounds, kf=kf, reuse=reuse)
         r = self._polish(self._reloc_blur(x, fr), fr, fuse=False)
         if x is not None and r is x and r.cov is not None:  # (_reloc_blur scales x's covariance in place)
             k = np.r_[[self.cfg.reloc_xfeat_sigma_t] * 3, [1.0] * 3]
@@ -983,16 +986,22 @@ class RenderMatchTracker:
         return dt > self.cfg.rerender_m or dr > self.cfg.rerender_deg
 
     def _render_and_refine(self, fr: _Frame, T: Pose, rounds: int = 1, kf: Keyframe | None = None,
-                           tracking: bool = False) -> PnpResult | None:
+                           tracking: bool = False, reuse: bool = False) -> PnpResult | None:
         """Render at ``T`` and match, up to ``rounds`` times while the pose still moves; keeps the last keyframe.
         ``kf``: an existing render at ``T`` for the first round. ``tracking``: a plausible pose is enough
         (relocalizations must be good; a plausible one before the last round is rendered at once more: office seed 5's
-        cold frames 134 and 230, coarse poses 12 / 54 cm off, matched 5.7 / 5.3 cm off at 1.0 / 1.9 cm sigma first)."""
+        cold frames 134 and 230, coarse poses 12 / 54 cm off, matched 5.7 / 5.3 cm off at 1.0 / 1.9 cm sigma first).
+        ``reuse``: the first round may match a recent verification's render near ``T`` (:meth:`_reusable`); the pose
+        settles only on a render within 2 cm of it, as before."""
         accept = self._plausible if tracking else self._good
         r = None
+        if kf is None and reuse:
+            kf = self._reusable(T, fr)
         for i in range(rounds):
             if i > 0 or kf is None:
                 kf = self._keyframe(T, fr)
+                if reuse and self.cfg.verify_renders_kept > 0:
+                    self.verify_kfs = (self.verify_kfs + [kf])[-self.cfg.verify_renders_kept:]
             r = self._match(kf, fr, T, fresh=True)
             if not accept(r):
                 if i + 1 < rounds and self._plausible(r):  # closer, not yet sure: rendered at once more
@@ -1001,10 +1010,25 @@ class RenderMatchTracker:
                 return None
             kf.ref_inliers = r.n_inliers
             self.kf = kf
-            if not self._far(r.T_wc, kf) and T.distance_to(r.T_wc)[0] < 0.02:
+            if not self._far(r.T_wc, kf) and kf.T_wc.distance_to(r.T_wc)[0] < 0.02:
                 break
             T = r.T_wc
         return r
+
+    def _reusable(self, T: Pose, fr: _Frame) -> Keyframe | None:
+        """The nearest of the renders kept from recent verifications (``verify_kfs``) that is not ``_far`` from
+        ``T`` and serves the frame's camera, or None. A LOST stretch verifies the same coarse places frame after
+        frame (a whip pan, a close-up no view fits): office seed 13's 76 LOST frames made 111 such renders, each
+        ~0.2 s and an XFeat pass on it ~0.1 s; a render a few centimetres or degrees from the coarse pose serves its
+        first match as well as one at it (tracking matches against renders up to ``rerender_m`` / ``rerender_deg``
+        away), and the coarse pose itself is decimetres off."""
+        near = [(k.T_wc.distance_to(T)[0], j) for j, k in enumerate(self.verify_kfs)
+                if k.frame_camera == fr.camera and not self._far(T, k)]
+        if not near:
+            return None
+        kf = self.verify_kfs[min(near)[1]]
+        log.debug("verification: a render %.2f m from the coarse pose reused", min(near)[0])
+        return kf
 
     def _relocalize(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
                     reach: tuple[np.ndarray, float] | None = None,
@@ -1072,7 +1096,7 @@ class RenderMatchTracker:
         for coarse, _ in hyps[:cfg.reloc_verify]:
             if coarse.n_inliers < need or (found is not None and coarse.n_inliers < cfg.reloc_rival_verify * found[0].n_inliers):
                 break
-            r = self._reacquire(fr, coarse.T_wc)
+            r = self._reacquire(fr, coarse.T_wc, reuse=True)
             if not self._good(r):
                 if r is not None and fr.reason is None:  # confirmed by its render, but the frame's blur leaves it unsure
                     fr.reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg "
@@ -1115,7 +1139,7 @@ class RenderMatchTracker:
         check = max(cfg.reloc_check, int(np.ceil(fraction * db.n_views)))
 
         def verify(rival: PnpResult) -> bool:  # a near rival is a place of its own when it verifies elsewhere
-            v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds)
+            v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds, reuse=True)
             return (v is not None and not self._same_place(r, v)
                     and not self._agreement(fr, self.kf) < cfg.reloc_min_agreement)  # (a wrong aisle is no rival)
 
@@ -1402,6 +1426,7 @@ class RenderMatchTracker:
             self.motion = None
         T_prev = self.T_last
         self.T_last, self.stamp_last, self.recent = r.T_wc, stamp, None
+        self.verify_kfs = []  # tracking again: the next LOST stretch is elsewhere (and a server's clients hold less)
         # else weakly constrained, or where the motion cannot have taken it: no pose reported, but tracking continues
         good = (self._good(r) and (status != Status.TRACKING or self._consistent(r, predicted, fr.dt_next))
                 and rs_settled)
