@@ -10,6 +10,11 @@ Why fingerprints: stop 48 found the committed baseline's office walk (280/300) m
 other code; the same recipe built afresh gives 271/300 with the same tracker (after the whip pan the look-around's
 best view gets 24-29 inliers where a pose needs 30). `benchmarks/walks.py` stores each walk's fingerprint with its
 numbers and does not judge a walk on a site that differs from the baseline's: rebuild the baseline on that site.
+Another machine builds another database from the same recipe (stop 56: scan, sequence and P&L map the same to the
+byte, the database not: XFeat's convolutions round differently on another CPU), so there compare two commits on the
+same sites instead, the old one checked out with `git worktree add /tmp/old REV` and run as
+`cd /tmp/old && python benchmarks/walks.py --root /path/to/runs/bench-sim ...` (it imports its own code; its first
+walk compiles its numba kernels, ~20 s, so time the walks after one).
 """
 
 from __future__ import annotations
