@@ -146,7 +146,8 @@ class RMConfig:
     #                                          aisle 38 m off with 111 inliers; the top 33 views held one place with half
     #                                          that, the top 83 three (a periodic site), and the true place none
     reloc_refine_rounds: int = 2  # render-and-match rounds after a relocalization's coarse pose
-    verify_renders_kept: int = 6  # renders of recent verifications kept while LOST, for the next frame's (_reusable)
+    verify_renders_kept: int = 6  # renders of recent verifications kept while LOST, for the next frame's (_reusable);
+    #                               ~2.5 MB each at 640x480 (a LOST server client holds up to ~15 MB more); 0 = none
     reloc_xfeat_sigma_t: float = 2.0  # a relocalized or re-acquired pose that no direct alignment replaced (XFeat's own) has its
     #                                  position 1-sigma taken this many times larger: XFeat poses err 1.7-4.9x their
     #                                  scatter, most along the view in far scenes (warehouse seed 3, aisles ~10 m deep:
