@@ -992,8 +992,8 @@ class RenderMatchTracker:
         ``kf``: an existing render at ``T`` for the first round. ``tracking``: a plausible pose is enough
         (relocalizations must be good; a plausible one before the last round is rendered at once more: office seed 5's
         cold frames 134 and 230, coarse poses 12 / 54 cm off, matched 5.7 / 5.3 cm off at 1.0 / 1.9 cm sigma first).
-        ``reuse``: the first round may match a recent verification's render near ``T`` (:meth:`_reusable`); the pose
-        settles only on a render within 2 cm of it, as before."""
+        ``reuse``: the first round may match a recent verification's render near ``T`` (:meth:`_reusable`); as before,
+        the rounds stop early only on a render within 2 cm of the pose found."""
         accept = self._plausible if tracking else self._good
         r = None
         if kf is None and reuse:
@@ -1023,13 +1023,8 @@ class RenderMatchTracker:
         ~0.2 s and an XFeat pass on it ~0.1 s; a render a few centimetres or degrees from the coarse pose serves its
         first match as well as one at it (tracking matches against renders up to ``rerender_m`` / ``rerender_deg``
         away), and the coarse pose itself is decimetres off."""
-        near = [(k.T_wc.distance_to(T)[0], j) for j, k in enumerate(self.verify_kfs)
-                if k.frame_camera == fr.camera and not self._far(T, k)]
-        if not near:
-            return None
-        kf = self.verify_kfs[min(near)[1]]
-        log.debug("verification: a render %.2f m from the coarse pose reused", min(near)[0])
-        return kf
+        near = [k for k in self.verify_kfs if k.frame_camera == fr.camera and not self._far(T, k)]
+        return min(near, key=lambda k: k.T_wc.distance_to(T)[0], default=None)
 
     def _relocalize(self, fr: _Frame, near: tuple[np.ndarray, float] | None,
                     reach: tuple[np.ndarray, float] | None = None,
