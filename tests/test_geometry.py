@@ -113,7 +113,7 @@ def test_camera_json_roundtrip(tmp_path):
         Camera.from_dict({"width": 1, "height": 1, "fx": 1, "cx": 0, "cy": 0})
 
 
-def test_linear_motion_blur_matches_the_sub_pose_blur_for_a_short_exposure():
+def test_linear_motion_blur_matches_the_sub_pose_blur_for_a_short_exposure(kernels):
     from services.geometry.blur import blur_length_px, motion_blur, motion_blur_linear
 
     rng = np.random.default_rng(0)
@@ -131,7 +131,7 @@ def test_linear_motion_blur_matches_the_sub_pose_blur_for_a_short_exposure():
     assert np.abs(exact - fast)[10:-10, 10:-10].max() < 2.0
 
 
-def test_motion_blur_with_a_wild_pose_stays_finite_and_fast():
+def test_motion_blur_with_a_wild_pose_stays_finite_and_fast(kernels):
     """A motion guess that puts points behind the camera, through a lens model far beyond its range, must blur
     to something finite at once (OpenCV walks an outside coordinate back one image width at a time: a NaN or a
     1e9 px map once made one blur take minutes)."""
@@ -146,6 +146,29 @@ def test_motion_blur_with_a_wild_pose_stays_finite_and_fast():
     out = motion_blur_linear(img, depth, cam, Pose.identity(), Pose.identity(), Pose.from_rotvec_t([0, 1.2, 0], [0, 0, 0.5]), 10)
     assert time.perf_counter() - t0 < 5.0
     assert np.isfinite(out).all()
+
+
+def test_blur_sampling_maps_are_the_same_compiled_and_in_numpy(use_kernels):
+    """The server blurs renders with the compiled sampling maps, a light client would with numpy: the same maps, to
+    1e-4 px, through a distorted lens, with pixels without depth and a motion that puts some points behind the camera."""
+    from services.geometry.blur import _Warp
+
+    rng = np.random.default_rng(1)
+    cam = Camera(200, 150, 150.0, 150.0, 99.5, 74.5, (-0.2, 0.05, 0.001, -0.001, 0.0))
+    depth = (1.0 + 3.0 * rng.random((150, 200))).astype(np.float32)
+    depth[60:80, 90:120] = 0.0
+    warp = _Warp(depth, cam, Pose.from_rotvec_t([0.1, -0.2, 0.05], [1.0, 2.0, 1.5]))
+    maps = {}
+    for name in ("numpy", "numba"):
+        use_kernels(name)
+        maps[name] = [warp.maps(warp.T_cw.inverse() @ Pose.from_rotvec_t(w, t))
+                      for w, t in (([0, 0.03, 0.01], [0.02, 0, 0]), ([0, 1.9, 0], [0, 0, 2.5]))]
+    for (ax, ay), (bx, by) in zip(maps["numpy"], maps["numba"]):
+        assert ax.dtype == bx.dtype == np.float32 and ax.shape == (150, 200)
+        np.testing.assert_allclose(ax, bx, rtol=0, atol=1e-4)  # (a matrix product's rounding may differ in the last bit)
+        np.testing.assert_allclose(ay, by, rtol=0, atol=1e-4)
+    wild_x = maps["numba"][1][0]
+    assert (wild_x == -1).any() and (wild_x > 0).any()  # behind the camera: -1; the rest still maps
 
 
 def test_odometry_check_stops_using_an_odometry_that_disagrees_with_the_tracked_motion():

@@ -15,6 +15,7 @@ import numpy as np
 
 from services.geometry.camera import Camera
 from services.geometry.se3 import Pose
+from services.kernels import optional_kernels
 
 __all__ = ["motion_blur", "motion_blur_linear", "blur_length_px"]
 
@@ -32,25 +33,30 @@ class _Warp:
         self.points = _rays(camera) * np.where(d > 0, d, 50.0)  # pixels without depth: far away
         self.camera, self.T_cw = camera, T_wc.inverse()
 
-    def maps(self, T_k: Pose) -> np.ndarray:
-        """(H, W, 2) float32 sampling maps for the camera at ``T_k``."""
+    def maps(self, T_k: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) float32 sampling maps, x and y, for the camera at ``T_k``."""
         T_ck = self.T_cw @ T_k  # sub-pose camera -> sharp camera
+        W, H = self.camera.width, self.camera.height
+        kern = optional_kernels("services.geometry.blur_kernels")
+        if kern is not None:  # the same arithmetic a pixel at a time, ~10x faster
+            c = self.camera
+            return kern.sampling_maps(self.points, T_ck.R, T_ck.t, c.fx, c.fy, c.cx, c.cy,
+                                      np.asarray(c.distortion, np.float64), W, H)
         with np.errstate(all="ignore"):
-            uv, _ = self.camera.project(self.points @ T_ck.R.T + T_ck.t)
+            uv, z = self.camera.project(self.points @ T_ck.R.T + T_ck.t)
         # points behind the camera or far outside the image (a wild motion guess, a lens model beyond its range)
         # project anywhere, NaN included; OpenCV reflects an outside coordinate into the image one image width at
         # a time, so one at 1e9 px costs millions of steps (a render blurred for an HD frame took minutes)
-        W, H = self.camera.width, self.camera.height
-        uv = np.where(np.isfinite(uv), uv, -1.0)
-        uv[:, 0] = np.clip(uv[:, 0], -W, 2 * W - 1)
-        uv[:, 1] = np.clip(uv[:, 1], -H, 2 * H - 1)
-        return uv.reshape(H, W, 2).astype(np.float32)
+        uv = np.where(np.isfinite(uv).all(axis=1, keepdims=True) & (z[:, None] > 0), uv, -1.0)
+        mx = np.clip(uv[:, 0], -W, 2 * W - 1).reshape(H, W).astype(np.float32)
+        my = np.clip(uv[:, 1], -H, 2 * H - 1).reshape(H, W).astype(np.float32)
+        return mx, my
 
 
 def _average(src: np.ndarray, maps) -> np.ndarray:
     acc = np.zeros_like(src)
-    for n, m in enumerate(maps, 1):
-        acc += cv2.remap(src, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    for n, (mx, my) in enumerate(maps, 1):
+        acc += cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     return acc / n
 
 
@@ -77,8 +83,9 @@ def motion_blur_linear(sharp: np.ndarray, depth: np.ndarray, camera: Camera, T_w
     if n <= 1:
         return src
     warp = _Warp(depth, camera, T_wc)
-    m0, m1 = warp.maps(T_start), warp.maps(T_end)
-    return _average(src, (m0 + (m1 - m0) * (j / (n - 1)) for j in range(n)))
+    (x0, y0), (x1, y1) = warp.maps(T_start), warp.maps(T_end)
+    dx, dy = x1 - x0, y1 - y0
+    return _average(src, ((x0 + dx * (j / (n - 1)), y0 + dy * (j / (n - 1))) for j in range(n)))
 
 
 def blur_length_px(camera: Camera, T_a: Pose, T_b: Pose, depth_m: float = 1.5) -> float:
