@@ -733,6 +733,25 @@ def test_exposure_calibration_peak_between_candidates():
     assert 0.2 <= _parabolic_peak(x, flat) <= 0.4
 
 
+def test_the_exposure_is_calibrated_from_several_fast_frames_not_one(rm_setup):
+    """One fast frame's best exposure candidate is noisy (a sparse-scan walk's first picked the whole frame interval,
+    2.8x the truth, and the frames after it were judged that blurred): until ``calib_min_frames`` have scored, the
+    exposure prior stands; then the candidates' summed scores decide."""
+    from services.localize.render_match import RenderMatchTracker, RMConfig, _Frame
+
+    renderer, ext, _, seq, _ = rm_setup
+    tr = RenderMatchTracker(renderer, ext, None, RMConfig())
+    fr = _Frame(seq.read(0).image, seq.camera, {}, (seq.groundtruth.poses[0], 1 / 30), 0.0, None)
+    fracs = np.asarray(tr.cfg.calib_fractions)
+    votes = [fracs == 1.0, fracs == 0.3, fracs == 0.3]  # a first frame for the whole interval, then two for 0.3 of it
+    for n, vote in enumerate(votes, start=1):
+        tr.calib_scores += vote.astype(float)
+        tr.calib_intervals.append(1 / 30)
+        if n < 3:  # neither the first frame's whole interval nor a tie with it
+            assert tr.exposure_s is None and tr._exposure(fr) == pytest.approx(tr.cfg.exposure_prior / 30)
+    assert tr.exposure_s == pytest.approx(0.3 / 30, abs=0.1 / 30)
+
+
 def test_blurred_frames_report_a_larger_uncertainty(rm_setup):
     """The same frame, moving fast: its predicted 1-sigma is scaled by its blur (as XFeat sees it) / 3.75 px, or by
     the square root of that when tracked directly (blurred templates model the blur; see RMConfig.direct_blur_power)."""

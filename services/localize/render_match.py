@@ -195,6 +195,10 @@ class RMConfig:
     exposure_prior: float = 0.3  # exposure / frame interval assumed until calibrated (indoor video: ~10 ms at 30 fps)
     calib_min_px: float = 20.0  # frames moving at least this much per frame interval calibrate the exposure ...
     calib_frames: int = 8  # ... until this many have
+    calib_min_frames: int = 3  # the calibrated exposure replaces exposure_prior once this many frames have scored: one or
+    #                            two fast frames alone pick 0 or the whole interval (office seed 61: 0 ms twice; with its
+    #                            keyframes at another resolution, 33 ms, truly 12, and the 30 frames after it read 3x their
+    #                            blur and were too uncertain to report). The sweep: +22 frames over 10 walks (stop 58)
     calib_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)  # exposure candidates, x frame interval
     blur_sigma_px: float = 3.75  # a frame blurred more than this (pixels as XFeat sees them: 5 px of a 640-wide frame) has its uncertainty scaled by blur / this
     track_sigma_factor: float = 3.0  # a pose up to this many times less certain than the gate is not reported but tracked from
@@ -481,14 +485,18 @@ class RenderMatchTracker:
 
     @property
     def exposure_s(self) -> float | None:
-        """The exposure time in use: configured, else calibrated, else None (no blur yet).
+        """The exposure time in use: configured, else calibrated (once ``calib_min_frames`` have scored), else None
+        (``exposure_prior`` of the frame interval is assumed).
 
         Calibrated: the peak of the candidates' scores, refined by a parabola through the best candidate
         and its neighbours, times the median frame interval."""
         if self.cfg.exposure_s is not None:
             return self.cfg.exposure_s
-        if not self.calib_intervals:
+        if len(self.calib_intervals) < self.cfg.calib_min_frames:
             return None
+        return self._calibrated_exposure()
+
+    def _calibrated_exposure(self) -> float:
         return float(_parabolic_peak(np.asarray(self.cfg.calib_fractions), self.calib_scores) * np.median(self.calib_intervals))
 
     def _exposure(self, fr: "_Frame") -> float | None:
@@ -696,7 +704,7 @@ class RenderMatchTracker:
                 self.calib_scores += inl / inl.max()
                 self.calib_intervals.append(fr.motion[1])
                 log.info("exposure calibration %d/%d: best %.1f ms on this frame, %.1f ms over all", len(self.calib_intervals),
-                         self.cfg.calib_frames, 1e3 * self.cfg.calib_fractions[int(np.argmax(inl))] * fr.motion[1], 1e3 * self.exposure_s)
+                         self.cfg.calib_frames, 1e3 * self.cfg.calib_fractions[int(np.argmax(inl))] * fr.motion[1], 1e3 * self._calibrated_exposure())
             # the frame's pose as any other frame's, with the exposure calibrated so far: one frame's own best
             # candidate is noisy, and these are the fastest, least forgiving frames
         return self._solve(live, *self._keyframe_points(kf, fr), fr, initial, px)
