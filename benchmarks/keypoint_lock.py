@@ -31,10 +31,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from _site import walk_with_truth  # noqa: E402
 from services.features.matching import mutual_nn  # noqa: E402
 from services.features.xfeat import XFeatExtractor  # noqa: E402
 from services.geometry.se3 import Pose  # noqa: E402
-from services.io.sequence import open_sequence  # noqa: E402
 from services.sim.site import SimSite  # noqa: E402
 
 
@@ -49,9 +49,7 @@ def main() -> int:
     args = ap.parse_args()
     torch.set_num_threads(1)
     site = Path(args.site)
-    seq = open_sequence(site / "seq_00")
-    if seq.groundtruth is None:
-        raise SystemExit(f"{site}/seq_00 has no groundtruth.txt")
+    seq = walk_with_truth(site)
     sim = SimSite(site)
     cam = seq.camera
     base = min(1.0, args.side / max(cam.width, cam.height))

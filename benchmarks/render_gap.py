@@ -31,8 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from _site import walk_with_truth  # noqa: E402
 from services.io.scans import load_scan  # noqa: E402
-from services.io.sequence import open_sequence  # noqa: E402
 from services.localize.cli import _tracking_extractor  # noqa: E402
 from services.localize.render_match import RenderMatchTracker, RMConfig, _Frame, normalised_gray  # noqa: E402
 from services.render.renderer import Renderer  # noqa: E402
@@ -48,9 +48,7 @@ def main() -> int:
     args = ap.parse_args()
     torch.set_num_threads(1)
     site = Path(args.site)
-    seq = open_sequence(site / "seq_00")
-    if seq.groundtruth is None:
-        raise SystemExit(f"{site}/seq_00 has no groundtruth.txt")
+    seq = walk_with_truth(site)
     sim = SimSite(site)
     gt = seq.groundtruth.as_dict()
     renderer = Renderer(load_scan(site / "scan.ply"), device="cpu")
