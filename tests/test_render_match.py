@@ -734,14 +734,15 @@ def test_exposure_calibration_peak_between_candidates():
 
 
 def test_the_exposure_is_calibrated_from_several_fast_frames_not_one(rm_setup):
-    """One fast frame's best exposure candidate is noisy (a sparse-scan walk's first picked the whole frame interval,
-    2.8x the truth, and the frames after it were judged that blurred): until ``calib_min_frames`` have scored, the
-    exposure prior stands; then the candidates' summed scores decide."""
+    """One fast frame's best exposure candidate is noisy (on a sparse-scan walk, with keyframes at another resolution,
+    the first picked the whole frame interval, 2.8x the truth, and the frames after it were judged that blurred): until
+    ``calib_min_frames`` have scored, the exposure prior stands; then the candidates' summed scores decide."""
+    from services.geometry.se3 import Pose
     from services.localize.render_match import RenderMatchTracker, RMConfig, _Frame
 
     renderer, ext, _, seq, _ = rm_setup
     tr = RenderMatchTracker(renderer, ext, None, RMConfig())
-    fr = _Frame(seq.read(0).image, seq.camera, {}, (seq.groundtruth.poses[0], 1 / 30), 0.0, None)
+    fr = _Frame(seq.read(0).image, seq.camera, {}, (Pose.identity(), 1 / 30), 0.0, None)  # 1/30 s between frames
     fracs = np.asarray(tr.cfg.calib_fractions)
     votes = [fracs == 1.0, fracs == 0.3, fracs == 0.3]  # a first frame for the whole interval, then two for 0.3 of it
     for n, vote in enumerate(votes, start=1):
