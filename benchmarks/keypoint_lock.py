@@ -54,6 +54,11 @@ def main() -> int:
     cam = seq.camera
     base = min(1.0, args.side / max(cam.width, cam.height))
     ext = XFeatExtractor(device="cpu", top_k=1024)
+    gt = seq.groundtruth.as_dict()
+    frames = []  # (true pose, the frame's features), each frame read and extracted once for every ratio and turn
+    for i in args.frames:
+        f = seq.read(i)
+        frames.append((gt[f.stamp], ext.extract(f.image, max_side=args.side)))
     print("| ratio | turn (deg) | mean flow (px) | matches | median keypoint error (px) | pull |")
     print("|---:|---:|---:|---:|---:|---:|")
     for ratio in args.ratios:
@@ -61,10 +66,7 @@ def main() -> int:
         for turn in args.turns:
             D = Pose.from_rotvec_t(np.array([0.0, np.radians(turn), 0.0]), np.zeros(3))
             rows = []
-            for i in args.frames:
-                f = seq.read(i)
-                T = seq.groundtruth.as_dict()[f.stamp]
-                live = ext.extract(f.image, max_side=args.side)
+            for T, live in frames:
                 pic = sim.render(T @ D, pic_cam, lighting="scan")[0]
                 feats = ext.extract(pic, max_side=max(pic.shape[:2]))
                 m = mutual_nn(live.desc, feats.desc, 0.8, "cpu")
