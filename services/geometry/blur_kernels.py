@@ -11,6 +11,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from services.geometry.distortion_kernel import distort
+
 __all__ = ["sampling_maps"]
 
 
@@ -28,11 +30,9 @@ def sampling_maps(points, R, t, fx, fy, cx, cy, dist, W, H):
         Z = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + t[2]
         u = v = -1.0
         if Z > 0:
-            x, y = X / Z, Y / Z
-            r2 = x * x + y * y
-            radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-            u = fx * (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)) + cx
-            v = fy * (y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y) + cy
+            x, y = distort(X / Z, Y / Z, k1, k2, p1, p2, k3)
+            u = fx * x + cx
+            v = fy * y + cy
             if not (np.isfinite(u) and np.isfinite(v)):
                 u = v = -1.0
         mx[i] = min(max(u, -W), 2 * W - 1)

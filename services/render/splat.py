@@ -22,6 +22,7 @@ import numba as nb
 import numpy as np
 
 from services.geometry.camera import Camera
+from services.geometry.distortion_kernel import distort
 from services.geometry.se3 import Pose
 from services.render.cloud import PreparedCloud
 from services.render.threads import keeps_torch_threads
@@ -56,14 +57,9 @@ def _project(p, R, t, fx, fy, cx, cy, k1, k2, p1, p2, k3, distorted, r2max, near
     x = X / Z
     y = Y / Z
     if distorted:
-        r2 = x * x + y * y
-        if r2 > r2max:
+        if x * x + y * y > r2max:
             return -1, Z
-        rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        x = xd
-        y = yd
+        x, y = distort(x, y, k1, k2, p1, p2, k3)
     u = fx * x + cx + 0.5
     v = fy * y + cy + 0.5
     if u < 0.0 or v < 0.0 or u >= W or v >= H:
