@@ -3,6 +3,10 @@
 The same arithmetic as :meth:`services.geometry.camera.Camera._distort` does over numpy arrays, written once for the
 kernels that project a point at a time: the renderer's splat (:mod:`services.render.splat`) and the blur's sampling
 maps (:mod:`services.geometry.blur_kernels`). Inlined where it is called: no call in the hot loop.
+
+numba's on-disk cache (``cache=True``) is keyed on the *caller's* source file only (numba/numba#8396 would extend
+it): after editing this function, touch those two files, or delete their ``__pycache__``, or they keep running the
+old arithmetic compiled in.
 """
 
 from __future__ import annotations
