@@ -92,6 +92,22 @@ def add_odometry_args(p: argparse.ArgumentParser, use: str) -> None:
                         "every pose here) or opengl (x right, y up, z backward: ARKit, ARCore, game engines)")
 
 
+def positions_picture(positions, out, **kw):
+    """OUT.png beside a database (or MAPDIR/map.png): where it was rendered from, over the scan or the map's landmarks; None (logged) when it
+    cannot be drawn: the database or map is written either way."""
+    import logging
+
+    try:
+        from services.eval.plots import picture_path, plot_positions_topdown
+
+        path = plot_positions_topdown(positions, picture_path(out), **kw)
+        print(f"picture: {path} (the region of interest seen from above: are these where cameras go?)")
+        return path
+    except Exception as e:  # noqa: BLE001
+        logging.getLogger("cristal").warning("no picture of the positions: %s", e)
+        return None
+
+
 def emit_summary(summary: dict) -> None:
     """The last line of every job's stdout: one JSON object, machine-readable."""
     print(json.dumps(summary, sort_keys=True, default=float), flush=True)

@@ -10,6 +10,8 @@ from services.geometry.se3 import Pose, rotvec_to_rotmat
 from services.io.scan import Scan
 from services.io.trajectory import Trajectory, write_tum
 
+from _pictures import red_pixels
+
 
 def walk(n=60, seed=0) -> Trajectory:
     """A hand-held-like walk: a curving 3D path, the camera turning as it goes; stamps like rgb.txt's."""
@@ -166,6 +168,29 @@ def test_plots_write_pngs(tmp_path):
     out = plot_errors(compute_ape(gt, est, "se3"), tmp_path / "errors.png")
     assert out.read_bytes()[:4] == b"\x89PNG" and out.stat().st_size > 10000
     assert not list(tmp_path.rglob("*.tmp"))
+
+
+def test_a_localization_is_drawn_from_above_with_its_lost_stretches(tmp_path):
+    """The run's picture (cristal localize writes it beside TRAJ.txt): the poses reported, broken at LOST frames, with
+    the relocalizations, the LOST stretch after the last pose, over the scan or a map's landmarks; no poses at all
+    still gives a picture (of the ground truth), and an estimate drawn adds red that the ground truth alone lacks."""
+    from services.eval.plots import picture_path, plot_localization_topdown, plot_positions_topdown
+    from services.io.frame_log import FrameRecord
+
+    gt = walk(120)
+    lost = set(range(30, 45)) | set(range(110, 120))
+    est = perturb(gt, trans_sigma=0.01, drop=lost)
+    status = ["LOST" if i in lost else "RELOCALIZED" if i in (0, 45) else "TRACKING" for i in range(120)]
+    records = [FrameRecord(stamp, st) for (stamp, _), st in zip(gt, status)]
+    assert picture_path(tmp_path / "run" / "traj.txt") == tmp_path / "run" / "traj.png"
+    with_poses = plot_localization_topdown(est, records, tmp_path / "a.png", scan=_scan(), gt=gt)
+    landmarks = plot_localization_topdown(est, records, tmp_path / "b.png", landmarks=_scan().xyz)
+    none = plot_localization_topdown(Trajectory(), [FrameRecord(r.stamp, "LOST") for r in records], tmp_path / "c.png", gt=gt)
+    for out in (with_poses, landmarks, none):
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert red_pixels(with_poses) > 500 and red_pixels(landmarks) > 500 and red_pixels(none) < 50
+    pos = plot_positions_topdown(gt.positions(), tmp_path / "pos.png", scan=_scan(), label="database positions")
+    assert red_pixels(pos) > 200 and not list(tmp_path.rglob("*.tmp"))
 
 
 @pytest.fixture

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from services.geometry.camera import Camera
+from _pictures import red_pixels
 
 
 @pytest.fixture(scope="module")
@@ -58,6 +59,7 @@ def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
     mapdir, summary = pnl_map
     assert summary["keyframes"] > 10 and summary["landmarks"] > 500
     assert (mapdir / "map.msg").exists() and (mapdir / "config.yaml").exists()
+    assert summary["picture"] == str(mapdir / "map.png") and red_pixels(mapdir / "map.png") > 60  # its 9 positions
     from services.prebuild.patches import LandmarkPatches
 
     patches = LandmarkPatches.load(mapdir / "patches.npz")  # the light localizer's landmark patches, beside the map
@@ -77,6 +79,7 @@ def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
     seq = open_sequence(out / "seq")
     est = read_tum(traj_path)
     assert len(est) >= 7 and s["localized"] == len(est)  # the first frame relocalizes with no prior
+    assert s["picture"] == str(tmp_path / "traj.png") and red_pixels(tmp_path / "traj.png") > 100  # over the landmarks
     a = compute_ape(seq.groundtruth, est, "none")
     # patch alignment: 0.3-0.4 cm / 0.06-0.07 deg here (ORB keypoints alone: 2.9 cm / 0.38 deg)
     assert a.trans_rmse < 0.015 and a.rot_rmse_deg < 0.25, (a.trans_rmse, a.rot_rmse_deg)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from services.localize.render_match import RMConfig, RenderMatchTracker, Status
+from _pictures import red_pixels
 
 
 @pytest.fixture(scope="module")
@@ -113,6 +114,7 @@ def test_localize_cli_writes_tum_and_reports_ape(rm_setup, small_site, tmp_path,
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert s["frames"] == 6 and s["localized"] >= 5 and s["ape_none_trans_rmse_m"] < 0.05
     assert sum(s.get("lost_reasons", {}).values()) == s["lost"]  # every LOST frame says why
+    assert s["picture"] == str(tmp_path / "t.png") and red_pixels(tmp_path / "t.png") > 100  # the poses, from above
     traj = read_tum(tmp_path / "t.txt")
     assert set(traj.stamps) <= set(seq.stamps[:6])
     from services.io.frame_log import read_frame_log
@@ -125,6 +127,20 @@ def test_localize_cli_writes_tum_and_reports_ape(rm_setup, small_site, tmp_path,
                  "--out", str(tmp_path / "x.txt")]) == 2
     assert main(["localize", str(out / "scan.ply"), str(out / "seq_00"), "--db", str(db_path), "--out",
                  str(tmp_path / "x.txt"), "--supersample", "0"]) == 2  # a clear error, not the default in silence
+
+
+def test_build_db_cli_writes_the_database_and_a_picture_of_its_positions(small_site, tmp_path, capsys):
+    from services.cli import main
+    from services.relocalize.database import RelocDB
+
+    out, _, _ = small_site
+    db_path = tmp_path / "db.npz"
+    assert main(["build-db", str(out / "scan.ply"), "--out", str(db_path), "--roi", "1", "1", "1.3", "8", "4", "1.7",
+                 "--spacing", "1.5", "--face-size", "96"]) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    db = RelocDB.load(db_path)
+    assert s["positions"] == db.meta["positions"] >= 2 and db.n_views == 4 * s["positions"]
+    assert s["picture"] == str(tmp_path / "db.png") and red_pixels(tmp_path / "db.png") > 8 * s["positions"] + 20
 
 
 def test_reacquires_at_the_last_good_pose_after_lost_without_a_database(rm_setup):

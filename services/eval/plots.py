@@ -1,5 +1,6 @@
 """Evaluation plots: trajectories seen from above (over the scan), errors over time, errors against the predicted
-uncertainty.
+uncertainty; and what a run did, for a recording with no ground truth: the poses of a localization seen from above,
+the positions a database or map was built from.
 
 Rendered with matplotlib's Agg canvas (no display, no pyplot global state) and written
 atomically as PNG.
@@ -22,11 +23,19 @@ if TYPE_CHECKING:  # pragma: no cover
     from services.eval.ape import ApeResult
     from services.io.scan import Scan
 
-__all__ = ["plot_trajectory_topdown", "plot_errors", "plot_uncertainty"]
+__all__ = ["plot_trajectory_topdown", "plot_localization_topdown", "plot_positions_topdown", "plot_errors",
+           "plot_uncertainty", "picture_path"]
 
 log = logging.getLogger(__name__)
 
 GT_COLOR, EST_COLOR, LOST_COLOR = "#1f77b4", "#d62728", "#7f7f7f"
+RELOC_COLOR, BACKFILL_COLOR = "#2ca02c", "#ff7f0e"
+
+
+def picture_path(path: str | Path) -> Path:
+    """``run/traj.txt`` -> ``run/traj.png``; ``site/reloc.npz`` -> ``site/reloc.png``."""
+    p = Path(path)
+    return p.with_name(p.stem + ".png")
 
 
 def _figure(w: float, h: float):
@@ -60,6 +69,32 @@ def _scan_points(scan: "Scan", lo: np.ndarray, hi: np.ndarray, z_max: float, max
     return pts[order, :2], scan.rgb[idx][order] / 255.0
 
 
+def _box(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The x-y box around ``xyz`` with the scan around it (a whole room or site)."""
+    lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    pad = max(3.0, 0.5 * float(np.max(hi - lo)))
+    return lo - pad, hi + pad
+
+
+def _background(ax, lo: np.ndarray, hi: np.ndarray, z_max: float, scan: "Scan | None", landmarks: np.ndarray | None,
+                max_points: int = 200_000, seed: int = 0) -> None:
+    """Under the plot, inside the x-y box [lo, hi] and below ``z_max`` (ceilings would hide the floor plan): the
+    scan's points in their colours, or else a map's landmarks (world xyz), grey by height."""
+    if scan is not None and len(scan):
+        xy, rgb = _scan_points(scan, lo, hi, z_max, max_points, seed)
+        ax.scatter(xy[:, 0], xy[:, 1], c=rgb, s=0.5, alpha=0.35, linewidths=0, rasterized=True, zorder=0)
+        log.debug("top view: %d scan points", len(xy))
+    elif landmarks is not None and len(landmarks):
+        P = np.asarray(landmarks, np.float64).reshape(-1, 3)
+        P = P[np.all((P[:, :2] >= lo) & (P[:, :2] <= hi), axis=1) & (P[:, 2] <= z_max)]
+        if len(P) > max_points:
+            P = P[np.random.default_rng(seed).choice(len(P), max_points, replace=False)]
+        P = P[np.argsort(P[:, 2])]
+        z0, z1 = (float(P[:, 2].min()), float(P[:, 2].max())) if len(P) else (0.0, 1.0)
+        ax.scatter(P[:, 0], P[:, 1], c=P[:, 2], cmap="Greys", vmin=2 * z0 - z1 - 0.1, vmax=z1, s=0.8, alpha=0.6,
+                   linewidths=0, rasterized=True, zorder=0)  # (mid-grey at the lowest: the floor must show)
+
+
 def plot_trajectory_topdown(gt: Trajectory, est: Trajectory, out_png: str | Path, scan: "Scan | None" = None,
                             title: str = "ground truth vs estimate (top view)", max_points: int = 200_000) -> Path:
     """Ground truth and estimate in the world x-y plane (z is up), equal aspect, over the scan if given.
@@ -80,13 +115,8 @@ def plot_trajectory_topdown(gt: Trajectory, est: Trajectory, out_png: str | Path
     fig = _figure(8, 7)
     ax = fig.add_subplot()
     if len(both):
-        lo, hi = both[:, :2].min(axis=0), both[:, :2].max(axis=0)
-        pad = max(3.0, 0.5 * float(np.max(hi - lo)))  # scan context around the walk (a whole room or site)
-        lo, hi = lo - pad, hi + pad
-        if scan is not None and len(scan):
-            xy, rgb = _scan_points(scan, lo, hi, float(both[:, 2].max()) + 0.5, max_points)
-            ax.scatter(xy[:, 0], xy[:, 1], c=rgb, s=0.5, alpha=0.35, linewidths=0, rasterized=True, zorder=0)
-            log.debug("top view: %d scan points", len(xy))
+        lo, hi = _box(both)
+        _background(ax, lo, hi, float(both[:, 2].max()) + 0.5, scan, None, max_points)
     ax.plot(P[:, 0], P[:, 1], "-", color=GT_COLOR, lw=1.6, label=f"ground truth ({len(gt)} frames)", zorder=2)
     n_est = int((~lost).sum())
     ax.plot(E[:, 0], E[:, 1], "-", color=EST_COLOR, lw=1.2, label=f"estimate ({n_est} frames with a pose)", zorder=3)
@@ -102,6 +132,92 @@ def plot_trajectory_topdown(gt: Trajectory, est: Trajectory, out_png: str | Path
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(title)
+    ax.grid(True, lw=0.3, alpha=0.5)
+    ax.legend(loc="best", fontsize=8, framealpha=0.85)
+    return _save(fig, out_png)
+
+
+def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Path, scan: "Scan | None" = None,
+                              landmarks: np.ndarray | None = None, gt: Trajectory | None = None,
+                              title: str | None = None, max_points: int = 200_000) -> Path:
+    """What a localization did, seen from above over the scan (or a map's landmarks): the poses reported, joined
+    frame to frame and broken where frames got none; the camera's heading every few poses; the relocalizations;
+    each LOST stretch as a dashed line from the pose before it to the pose after it, with its length in frames;
+    the ground truth when there is one. ``records``: the run's services.io.frame_log.FrameRecord, every frame in
+    order. For a recording with no ground truth this is the picture to look at first."""
+    poses = est.as_dict()
+    status = [r.status for r in records]
+    T = [poses.get(r.stamp) for r in records]
+    has = np.array([t is not None for t in T], bool)
+    P = np.array([t.t if t is not None else (np.nan, np.nan, np.nan) for t in T], float).reshape(-1, 3)
+    G = gt.positions() if gt is not None and len(gt) else np.zeros((0, 3))
+    both = np.vstack([P[has], G])
+    fig = _figure(8, 7)
+    ax = fig.add_subplot()
+    if len(both):
+        lo, hi = _box(both)
+        _background(ax, lo, hi, float(both[:, 2].max()) + 0.5, scan, landmarks, max_points)
+        step = 0.025 * float(np.max(hi - lo))  # heading ticks a few percent of the view long
+    if len(G):
+        ax.plot(G[:, 0], G[:, 1], "-", color=GT_COLOR, lw=1.0, alpha=0.7, label=f"ground truth ({len(G)} frames)", zorder=2)
+    # the reported poses: NaN between runs breaks the line where frames got none
+    if has.any():
+        ax.plot(P[:, 0], P[:, 1], "-", color=EST_COLOR, lw=1.4, zorder=3,
+                label=f"pose reported ({int(has.sum())} of {len(records)} frames)")
+    idx = np.flatnonzero(has)
+    gaps = [(a, b) for a, b in zip(idx[:-1], idx[1:]) if b - a > 1]  # a LOST stretch between two poses
+    min_label = max(3, len(records) // 60)
+    for k, (a, b) in enumerate(gaps):
+        ax.plot(P[[a, b], 0], P[[a, b], 1], "--", color=LOST_COLOR, lw=1.0, zorder=2,
+                label="LOST stretch (pose before to pose after)" if k == 0 else None)
+        if b - a - 1 >= min_label:
+            m = (P[a] + P[b]) / 2
+            ax.annotate(f"{b - a - 1} LOST", m[:2], fontsize=7, color="#444444", ha="center", va="bottom", zorder=6)
+    if len(idx):
+        heads = idx[:: max(1, len(idx) // 30)]
+        d = np.array([T[i].R[:2, 2] for i in heads])  # the viewing direction (camera z) in the floor plane
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+        ax.quiver(P[heads, 0], P[heads, 1], d[:, 0] * step, d[:, 1] * step, angles="xy", scale_units="xy", scale=1,
+                  color=EST_COLOR, width=0.0025, headwidth=3, headlength=4, alpha=0.7, zorder=4,
+                  label="viewing direction")
+        ax.plot(*P[idx[0], :2], "o", color=EST_COLOR, ms=8, mfc="none", mew=2,
+                label=f"first pose (frame {idx[0] + 1})", zorder=5)
+        tail = len(records) - 1 - idx[-1]
+        if tail:  # LOST from the last pose to the end of the sequence
+            ax.plot(*P[idx[-1], :2], "X", color="k", ms=8, zorder=6, label=f"last pose (frame {idx[-1] + 1}); "
+                    f"the {tail} frames after it LOST")
+    for name, color, marker in (("RELOCALIZED", RELOC_COLOR, "^"), ("BACKFILLED", BACKFILL_COLOR, ".")):
+        sel = np.array([s == name for s in status], bool) & has
+        if sel.any():
+            ax.plot(P[sel, 0], P[sel, 1], marker, color=color, ms=6 if marker == "^" else 4, ls="none", zorder=5,
+                    label=f"{name.lower()} ({int(sel.sum())})")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    lost = len(records) - int(has.sum())
+    ax.set_title(title or f"localization (top view): {int(has.sum())}/{len(records)} frames with a pose, {lost} LOST")
+    ax.grid(True, lw=0.3, alpha=0.5)
+    ax.legend(loc="best", fontsize=8, framealpha=0.85)
+    return _save(fig, out_png)
+
+
+def plot_positions_topdown(positions: np.ndarray, out_png: str | Path, scan: "Scan | None" = None,
+                           landmarks: np.ndarray | None = None, label: str = "positions", title: str | None = None,
+                           max_points: int = 200_000) -> Path:
+    """Where a relocalization database or a map was rendered from (world xyz), seen from above over the scan (or
+    the map's landmarks): is the region of interest where cameras go?"""
+    X = np.asarray(positions, float).reshape(-1, 3)
+    fig = _figure(8, 7)
+    ax = fig.add_subplot()
+    if len(X):
+        lo, hi = X[:, :2].min(axis=0) - 2.0, X[:, :2].max(axis=0) + 2.0
+        _background(ax, lo, hi, float(X[:, 2].max()) + 0.5, scan, landmarks, max_points)
+        ax.plot(X[:, 0], X[:, 1], "o", color=EST_COLOR, ms=4.5, mfc="none", mew=1.2, ls="none", zorder=3,
+                label=f"{label} ({len(X)})")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title or f"{len(X)} {label} (top view)")
     ax.grid(True, lw=0.3, alpha=0.5)
     ax.legend(loc="best", fontsize=8, framealpha=0.85)
     return _save(fig, out_png)

@@ -49,4 +49,5 @@ def run_localize_pnl(args) -> int:
         log.info("%s has no landmark patches (a map from before them, or from stella_vslam): keypoint measurements only", map_dir)
     # capture times: the frame interval (a 10 fps camera's blur is a tenth of its motion per frame, not 0.3 of it),
     # the odometry's and the rolling shutter's clock, and a start hint's widening
-    return localize_and_report(loc, seq, args, "pnl", stamped=True, odometry=odometry)
+    return localize_and_report(loc, seq, args, "pnl", stamped=True, odometry=odometry,
+                               background={"landmarks": loc.idx.pos})

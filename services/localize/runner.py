@@ -110,9 +110,11 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
     return traj, counts, stage, time.perf_counter() - t0, why, interrupted
 
 
-def localize_and_report(loc, seq, args, method: str, stamped: bool = False, after=None, odometry=None) -> int:
+def localize_and_report(loc, seq, args, method: str, stamped: bool = False, after=None, odometry=None,
+                        background: dict | None = None) -> int:
     """``cristal localize``'s output contract for either method; exit code 0 when any frame got a pose.
-    ``after(traj) -> dict``: a check run on the trajectory once timed (its fields join the summary)."""
+    ``after(traj) -> dict``: a check run on the trajectory once timed (its fields join the summary);
+    ``background``: what the run's top-view picture is drawn over (``scan=`` a Scan, or ``landmarks=`` world xyz)."""
     from services.cli import emit_summary, near_arg
     from services.io.frame_log import frame_log_path, write_frame_log
     from services.io.trajectory import write_tum
@@ -130,9 +132,12 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
         n = sum(counts.values())
     write_tum(args.out, traj, header=f"cristal localize --method {method}: camera-to-world in the scan frame")
     write_frame_log(frame_log_path(args.out), records)  # every frame: status, inliers, predicted 1-sigma, reason
+    picture = _picture(traj, records, seq, n, args.out, background or {})
     print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {n - len(traj)} lost), "
           f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
-    summary = {"out": args.out, "frame_log": str(frame_log_path(args.out)), "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
+    if picture is not None:
+        print(f"picture: {picture} (the poses seen from above over the {'scan' if 'scan' in (background or {}) else 'map'})")
+    summary = {"out": args.out, "frame_log": str(frame_log_path(args.out)), "picture": picture and str(picture), "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
                **({"interrupted": True} if interrupted else {}),
                "relocalizations": counts[Status.RELOCALIZED], "lost": n - len(traj), "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
@@ -160,3 +165,18 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
         summary.update(after(traj))
     emit_summary(summary)
     return 130 if interrupted else 0 if len(traj) else 1  # (130: ended by Ctrl-C, as a shell reports it)
+
+
+def _picture(traj, records: list, seq, n: int, out, background: dict):
+    """TRAJ.png beside TRAJ.txt (services.eval.plots.plot_localization_topdown), or None: a picture never costs the
+    poses, so a failure to draw is logged and the run goes on."""
+    try:
+        from services.eval.plots import picture_path, plot_localization_topdown
+        from services.io.trajectory import Trajectory
+
+        gt = seq.groundtruth
+        gt = Trajectory(gt.stamps[:n], gt.poses[:n]) if gt is not None else None
+        return plot_localization_topdown(traj, records, picture_path(out), gt=gt, **background)
+    except Exception as e:  # noqa: BLE001 (matplotlib missing on a device, a full disk: the trajectory is written)
+        log.warning("no top-view picture of the run: %s", e)
+        return None

@@ -14,7 +14,8 @@ examples:
 Renders views with the camera's intrinsics at every position of a uniform grid in the region of
 interest (all yaw directions, pitched up and down), extracts ORB with stella_vslam's settings,
 back-projects keypoints with the render depth, merges landmarks seen by several keyframes and
-writes MAPDIR/map.msg (stella_vslam / OpenVSLAM MessagePack map) and MAPDIR/config.yaml, atomically.
+writes MAPDIR/map.msg (stella_vslam / OpenVSLAM MessagePack map) and MAPDIR/config.yaml, atomically,
+and MAPDIR/map.png: the keyframe positions over the landmarks, seen from above (where the map holds).
 Localize with 'cristal localize MAPDIR SEQUENCE --method pnl --map MAPDIR', or with stella_vslam:
   run_image_slam -v orb_vocab.fbow -c MAPDIR/config.yaml --map-db-in MAPDIR/map.msg --disable-mapping
 """
@@ -70,7 +71,7 @@ def run_prebuild(args) -> int:
     import time
     from pathlib import Path
 
-    from services.cli import CliError, emit_summary
+    from services.cli import CliError, emit_summary, positions_picture
     from services.geometry.camera import Camera
     from services.io.scans import load_scan
     from services.prebuild.builder import BuildConfig, build_map
@@ -121,8 +122,11 @@ def run_prebuild(args) -> int:
     total = time.perf_counter() - t0
     print(f"map {out}: {m.n_keyframes} keyframes, {m.n_landmarks:,} landmarks, {size / 1e6:.1f} MB, "
           f"built in {stats['build_s']:.1f} s ({total:.1f} s with loading); stella_vslam config {out / CONFIG_FILE}")
+    picture = positions_picture(pos, out / MAP_FILE, landmarks=m.lm_pos, label="keyframe positions",
+                                title=f"map: {m.n_keyframes} keyframes at {len(pos)} positions, {m.n_landmarks:,} "
+                                      f"landmarks (grey by height; top view)")
     emit_summary({"out": str(out), "bytes": size, "total_s": round(total, 2), "stage": args.stage,
-                  "points": len(scan), **stats})
+                  "points": len(scan), "picture": picture and str(picture), **stats})
     return 0
 
 
