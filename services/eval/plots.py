@@ -59,9 +59,13 @@ def _scan_points(scan: "Scan", lo: np.ndarray, hi: np.ndarray, z_max: float, max
     """World xy and rgb of a random subsample of the scan inside the x-y box [lo, hi] and below z_max (ceiling cut)."""
     lo_l = (lo - scan.origin[:2]).astype(np.float32)
     hi_l = (hi - scan.origin[:2]).astype(np.float32)
-    x, y, z = scan.xyz[:, 0], scan.xyz[:, 1], scan.xyz[:, 2]
+    pool = None
+    if len(scan) > 20 * max_points:  # a survey scan (100 M+ points): look among a random few million, not all of them
+        pool = np.sort(np.random.default_rng(seed).integers(0, len(scan), 20 * max_points))  # (a repeat is harmless)
+    xyz = scan.xyz if pool is None else scan.xyz[pool]
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     mask = (x >= lo_l[0]) & (x <= hi_l[0]) & (y >= lo_l[1]) & (y <= hi_l[1]) & (z <= np.float32(z_max - scan.origin[2]))
-    idx = np.flatnonzero(mask)
+    idx = np.flatnonzero(mask) if pool is None else pool[mask]
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
     pts = scan.world_xyz(idx)
