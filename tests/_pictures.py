@@ -4,9 +4,15 @@ import cv2
 import numpy as np
 
 
-def red_pixels(png) -> int:
-    """How many pixels of a PNG are the estimate's red (services.eval.plots.EST_COLOR, #d62728): what a top view
-    draws the reported poses and the sampled positions in."""
+def pixels_of(png, colour: str) -> int:
+    """How many pixels of a PNG are ``colour`` ('#rrggbb'), give or take a little antialiasing."""
     img = cv2.imread(str(png))
     assert img is not None, f"{png} is no image"
-    return int((np.abs(img.astype(int) - (40, 39, 214)).sum(axis=2) < 40).sum())
+    bgr = [int(colour[i:i + 2], 16) for i in (5, 3, 1)]
+    return int((np.abs(img.astype(int) - bgr).sum(axis=2) < 40).sum())
+
+
+def red_pixels(png) -> int:
+    """Pixels of the estimate's red (services.eval.plots.EST_COLOR): what a top view draws the reported poses and the
+    sampled positions in."""
+    return pixels_of(png, "#d62728")

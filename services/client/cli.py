@@ -129,7 +129,10 @@ def run_stream(args) -> int:
     print(f"{len(traj)}/{st.frames} frames with a pose: {st.server} from the server, {st.local} local "
           f"({st.missed} missed deadlines, {st.lost} lost, {st.switches} worker switches); {s['fps']} FPS, "
           f"round trip p50 {s['rtt_p50_ms']} ms p99 {s['rtt_p99_ms']} ms; sources in {sources_path(args.out)}")
-    summary = {"out": args.out, "poses": len(traj), "odometry": odometry is not None, **s}
+    if st.picture is not None:
+        print(f"picture: {st.picture} (the poses seen from above)")
+    summary = {"out": args.out, "poses": len(traj), "odometry": odometry is not None,
+               "picture": st.picture and str(st.picture), **s}
     gt = getattr(seq, "groundtruth", None)
     if gt is not None and len(traj):
         from services.eval.ape import ape_first_frames

@@ -59,6 +59,7 @@ class StreamStats:
     wall_s: float = 0.0
     rows: list[tuple] = field(default_factory=list)
     interrupted: bool = False  # ended by Ctrl-C (a live camera's usual end)
+    picture: Path | None = None  # TRAJ.png, the poses from above, once written
 
     def summary(self) -> dict:
         rtt = np.array(self.rtt_ms) if self.rtt_ms else np.array([np.nan])
@@ -200,4 +201,23 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
 
         lines = ["# stamp source status server rtt_ms"] + [f"{s} {src} {stt} {srv} {r:.2f}" for s, src, stt, srv, r in st.rows]
         atomic_write_text(sources_path(out), "\n".join(lines) + "\n")
+        st.picture = _picture(traj, st.rows, seq, out, fallback)
     return traj, st
+
+
+def _picture(traj: Trajectory, rows: list, seq, out, fallback):
+    """TRAJ.png: the stream's poses from above (services.eval.plots.plot_localization_topdown), the local fallback's
+    marked, over its map's landmarks when it has one; None (logged) when it cannot be drawn: the trajectory is written."""
+    try:
+        from services.eval.plots import picture_path, plot_localization_topdown
+        from services.io.frame_log import FrameRecord
+
+        records = [FrameRecord(s, {"server": "TRACKING", "local": "LOCAL"}.get(src, "LOST")) for s, src, *_ in rows]
+        idx = getattr(getattr(fallback, "loc", None), "idx", None)
+        gt = getattr(seq, "groundtruth", None)
+        gt = Trajectory(gt.stamps[:len(rows)], gt.poses[:len(rows)]) if gt is not None else None
+        return plot_localization_topdown(traj, records, picture_path(out), landmarks=getattr(idx, "pos", None), gt=gt,
+                                         title=f"streamed (top view): {len(traj)}/{len(rows)} frames with a pose")
+    except Exception as e:  # noqa: BLE001 (no matplotlib on a headset: the trajectory and sources are written)
+        log.warning("no top-view picture of the stream: %s", e)
+        return None

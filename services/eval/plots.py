@@ -29,7 +29,7 @@ __all__ = ["plot_trajectory_topdown", "plot_localization_topdown", "plot_positio
 log = logging.getLogger(__name__)
 
 GT_COLOR, EST_COLOR, LOST_COLOR = "#1f77b4", "#d62728", "#7f7f7f"
-RELOC_COLOR, BACKFILL_COLOR = "#2ca02c", "#ff7f0e"
+RELOC_COLOR, BACKFILL_COLOR, LOCAL_COLOR = "#2ca02c", "#ff7f0e", "#9467bd"
 
 
 def picture_path(path: str | Path) -> Path:
@@ -148,7 +148,7 @@ def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Pat
     frame to frame and broken where frames got none; the camera's heading every few poses; the relocalizations;
     each LOST stretch as a dashed line from the pose before it to the pose after it, with its length in frames;
     the ground truth when there is one. ``records``: the run's services.io.frame_log.FrameRecord, every frame in
-    order. For a recording with no ground truth this is the picture to look at first."""
+    order (status RELOCALIZED, BACKFILLED and, from a streaming client, LOCAL are marked). For a recording with no ground truth this is the picture to look at first."""
     poses = est.as_dict()
     status = [r.status for r in records]
     T = [poses.get(r.stamp) for r in records]
@@ -156,11 +156,13 @@ def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Pat
     P = np.array([t.t if t is not None else (np.nan, np.nan, np.nan) for t in T], float).reshape(-1, 3)
     G = gt.positions() if gt is not None and len(gt) else np.zeros((0, 3))
     both = np.vstack([P[has], G])
-    fig = _figure(8, 7)
+    lo, hi = _box(both) if len(both) else (np.zeros(2), np.ones(2))
+    fig = _figure(9, float(np.clip(9 * (hi[1] - lo[1]) / (hi[0] - lo[0]) + 0.8, 4.5, 10)))  # the site's shape
     ax = fig.add_subplot()
     if len(both):
-        lo, hi = _box(both)
         _background(ax, lo, hi, float(both[:, 2].max()) + 0.5, scan, landmarks, max_points)
+        ax.set_xlim(lo[0], hi[0])  # the walk with the site around it, background or none
+        ax.set_ylim(lo[1], hi[1])
         step = 0.025 * float(np.max(hi - lo))  # heading ticks a few percent of the view long
     if len(G):
         ax.plot(G[:, 0], G[:, 1], "-", color=GT_COLOR, lw=1.0, alpha=0.7, label=f"ground truth ({len(G)} frames)", zorder=2)
@@ -190,12 +192,14 @@ def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Pat
         if tail:  # LOST from the last pose to the end of the sequence
             ax.plot(*P[idx[-1], :2], "X", color="k", ms=8, zorder=6, label=f"last pose (frame {idx[-1] + 1}); "
                     f"the {tail} frames after it LOST")
-    for name, color, marker in (("RELOCALIZED", RELOC_COLOR, "^"), ("BACKFILLED", BACKFILL_COLOR, ".")):
+    for name, color, marker, label in (("RELOCALIZED", RELOC_COLOR, "^", "relocalized"),
+                                       ("BACKFILLED", BACKFILL_COLOR, ".", "backfilled"),
+                                       ("LOCAL", LOCAL_COLOR, ".", "from the local P&L fallback")):
         sel = np.array([s == name for s in status], bool) & has
         if sel.any():
             ax.plot(P[sel, 0], P[sel, 1], marker, color=color, ms=6 if marker == "^" else 4, ls="none", zorder=5,
-                    label=f"{name.lower()} ({int(sel.sum())})")
-    ax.set_aspect("equal", adjustable="datalim")
+                    label=f"{label} ({int(sel.sum())})")
+    ax.set_aspect("equal", adjustable="box")  # (the limits are the box above)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     lost = len(records) - int(has.sum())
