@@ -12,7 +12,8 @@ examples:
   cristal stream 0 --camera cam.json --out live.txt --connect tcp/10.0.0.2:7447 --site hq --map-id floor2
 
 Writes the TUM trajectory (camera-to-world, scan frame) and TRAJ.sources.txt with the source of
-every pose: 'server', 'local' (the P&L fallback: server unreachable, deadline missed or lost) or '-'.
+every pose: 'server', 'local' (the P&L fallback: server unreachable, deadline missed or lost) or '-',
+and TRAJ.png: the poses seen from above (the fallback's marked; over its map's landmarks with --map).
 With --map DIR: a DIR holding map.msg is used as is; otherwise the bundle is downloaded into DIR.
 """
 
