@@ -34,7 +34,8 @@ examples:
                                                    cristal stream runs/demo/site/seq_00 --out t.txt --map pnl-cache
 
 writes OUT/site/ (the simulated site), OUT/reloc.npz and OUT/pnl/ (database and P&L map),
-OUT/estimate.txt (TUM) + OUT/estimate.sources.txt (server/local per frame), OUT/overlay.jpg,
+OUT/estimate.txt (TUM) + OUT/estimate.sources.txt (server/local per frame) + OUT/estimate.png (the poses
+from above, the local fallback's marked), OUT/overlay.jpg,
 OUT/plots/trajectory.png and OUT/plots/errors.png, and ends with a one-line JSON summary.
 """
 
