@@ -93,8 +93,8 @@ def add_odometry_args(p: argparse.ArgumentParser, use: str) -> None:
 
 
 def positions_picture(positions, out, **kw):
-    """OUT.png beside a database (or MAPDIR/map.png): where it was rendered from, over the scan or the map's landmarks; None (logged) when it
-    cannot be drawn: the database or map is written either way."""
+    """OUT.png beside a database (or MAPDIR/map.png): where it was rendered from, over the scan or the map's
+    landmarks; None (logged) when it cannot be drawn: the database or map is written either way."""
     import logging
 
     try:

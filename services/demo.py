@@ -451,7 +451,8 @@ def run(args) -> int:
             lines.append(f"  APE (none), server poses only: {100 * srv_ape.trans_rmse:.2f} cm, {srv_ape.rot_rmse_deg:.3f} deg")
         lines.append(f"  speed: {s['fps']} FPS end to end (one client, CPU server, next frame after the pose); round trip "
                      f"p50 {s['rtt_p50_ms']} ms, p99 {s['rtt_p99_ms']} ms (Zenoh + encoding p50 {s['overhead_p50_ms']} ms)")
-        lines.append(f"  wrote {est_path} (+ {sources_path(est_path).name}), {overlay}, {plots / 'trajectory.png'}, "
+        also = f", {st.picture.name}" if st.picture is not None else ""  # the client's top view
+        lines.append(f"  wrote {est_path} (+ {sources_path(est_path).name}{also}), {overlay}, {plots / 'trajectory.png'}, "
                      f"{plots / 'errors.png'}")
         lines.append("  seconds (wall/CPU): " + ", ".join(f"{k} {clock.wall[k]:.0f}/{clock.cpu[k]:.0f}" for k in clock.wall)
                      + f"; total {wall:.0f}/{cpu:.0f}")

@@ -185,7 +185,8 @@ def test_a_localization_is_drawn_from_above_with_its_lost_stretches(tmp_path):
     assert picture_path(tmp_path / "run" / "traj.txt") == tmp_path / "run" / "traj.png"
     with_poses = plot_localization_topdown(est, records, tmp_path / "a.png", scan=_scan(), gt=gt)
     landmarks = plot_localization_topdown(est, records, tmp_path / "b.png", landmarks=_scan().xyz)
-    none = plot_localization_topdown(Trajectory(), [FrameRecord(r.stamp, "LOST") for r in records], tmp_path / "c.png", gt=gt)
+    none = plot_localization_topdown(Trajectory(), [FrameRecord(r.stamp, "LOST") for r in records], tmp_path / "c.png",
+                                     gt=gt)
     for out in (with_poses, landmarks, none):
         assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert red_pixels(with_poses) > 500 and red_pixels(landmarks) > 500 and red_pixels(none) < 50

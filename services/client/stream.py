@@ -206,8 +206,9 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
 
 
 def _picture(traj: Trajectory, rows: list, seq, out, fallback):
-    """TRAJ.png: the stream's poses from above (services.eval.plots.plot_localization_topdown), the local fallback's
-    marked, over its map's landmarks when it has one; None (logged) when it cannot be drawn: the trajectory is written."""
+    """TRAJ.png: the stream's poses from above (services.eval.plots.plot_localization_topdown), the local
+    fallback's marked, over its map's landmarks when it has one; None (logged) when it cannot be drawn: the
+    trajectory is written either way."""
     try:
         from services.eval.plots import picture_path, plot_localization_topdown
         from services.io.frame_log import FrameRecord

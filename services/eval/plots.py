@@ -148,7 +148,8 @@ def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Pat
     frame to frame and broken where frames got none; the camera's heading every few poses; the relocalizations;
     each LOST stretch as a dashed line from the pose before it to the pose after it, with its length in frames;
     the ground truth when there is one. ``records``: the run's services.io.frame_log.FrameRecord, every frame in
-    order (status RELOCALIZED, BACKFILLED and, from a streaming client, LOCAL are marked). For a recording with no ground truth this is the picture to look at first."""
+    order (status RELOCALIZED, BACKFILLED and, from a streaming client, LOCAL are marked). For a recording with no
+    ground truth this is the picture to look at first."""
     poses = est.as_dict()
     status = [r.status for r in records]
     T = [poses.get(r.stamp) for r in records]
@@ -165,7 +166,8 @@ def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Pat
         ax.set_ylim(lo[1], hi[1])
         step = 0.025 * float(np.max(hi - lo))  # heading ticks a few percent of the view long
     if len(G):
-        ax.plot(G[:, 0], G[:, 1], "-", color=GT_COLOR, lw=1.0, alpha=0.7, label=f"ground truth ({len(G)} frames)", zorder=2)
+        ax.plot(G[:, 0], G[:, 1], "-", color=GT_COLOR, lw=1.0, alpha=0.7, zorder=2,
+                label=f"ground truth ({len(G)} frames)")
     # the reported poses: NaN between runs breaks the line where frames got none
     if has.any():
         ax.plot(P[:, 0], P[:, 1], "-", color=EST_COLOR, lw=1.4, zorder=3,

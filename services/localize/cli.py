@@ -34,8 +34,8 @@ beside it, TRAJ.frames.csv: every frame's status, inliers, predicted 1-sigma (cm
 fusing the poses should weigh them by) and why a LOST frame has no pose ('cristal eval' checks the
 1-sigmas against ground truth), and TRAJ.png: the poses seen from above over the scan (rm) or the
 map's landmarks (pnl), with the viewing direction, relocalizations and each LOST stretch (and the
-ground truth when the sequence has one): the first thing to look at after a recording. Prints frames localized, relocalizations and FPS per stage, the LOST
-frames by reason (Render & Match: "ambiguous place" in a repetitive site, where a prior would help;
+ground truth when the sequence has one): the first thing to look at after a recording. Prints
+frames localized, relocalizations and FPS per stage, the LOST frames by reason (Render & Match: "ambiguous place" in a repetitive site, where a prior would help;
 "pose too uncertain to report"; ...) and, when the sequence has a groundtruth.txt, the APE against
 it. Ends with a one-line JSON summary.
 """
@@ -264,9 +264,10 @@ def run_build_db(args) -> int:
     db.save(args.out)
     print(f"database {args.out}: {db.meta['positions']} positions, {db.n_views} views, {db.meta['features']:,} features "
           f"in {db.meta['build_seconds']} s")
+    plural = "s" * (len(pos) != 1)
     picture = positions_picture(pos, args.out, scan=scan, label="database positions",
-                                 title=f"relocalization database: {len(pos)} position{'s' * (len(pos) != 1)}, {args.spacing:g} m "
-                                       f"apart (top view)")
+                                title=f"relocalization database: {len(pos)} position{plural}, {args.spacing:g} m apart "
+                                      f"(top view)")
     emit_summary({"out": args.out, "picture": picture and str(picture),
                   **{k: db.meta[k] for k in ("positions", "views", "features", "build_seconds")}})
     return 0
@@ -306,7 +307,8 @@ def run_localize(args) -> int:
                    readout_s=getattr(args, "rolling_shutter", 0.0) / 1000.0,
                    keyframe_supersample=getattr(args, "supersample", None) or RMConfig().keyframe_supersample)
     tracker = RenderMatchTracker(renderer, _tracking_extractor(renderer, args.max_side), db, cfg)
-    return localize_and_report(tracker, seq, args, args.method, stamped=True, odometry=odometry, background={"scan": scan},
+    return localize_and_report(tracker, seq, args, args.method, stamped=True, odometry=odometry,
+                               background={"scan": scan},
                                after=None if getattr(args, "no_camera_check", False) else lambda traj: _camera_check(tracker, seq, traj))
 
 

@@ -136,8 +136,10 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {n - len(traj)} lost), "
           f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
     if picture is not None:
-        print(f"picture: {picture} (the poses seen from above over the {'scan' if 'scan' in (background or {}) else 'map'})")
-    summary = {"out": args.out, "frame_log": str(frame_log_path(args.out)), "picture": picture and str(picture), "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
+        over = "scan" if "scan" in (background or {}) else "map"
+        print(f"picture: {picture} (the poses seen from above over the {over})")
+    summary = {"out": args.out, "frame_log": str(frame_log_path(args.out)), "picture": picture and str(picture),
+               "method": method, "frames": n, "localized": len(traj), "odometry": odometry is not None,
                **({"interrupted": True} if interrupted else {}),
                "relocalizations": counts[Status.RELOCALIZED], "lost": n - len(traj), "fps": round(n / dt, 2),
                **{k: round(v, 2) for k, v in stage.items()}}
