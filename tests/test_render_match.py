@@ -316,6 +316,26 @@ def test_region_of_interest_polygon_and_box(small_site):
         RoiConfig(polygon=((0, 0), (1, 1)))
 
 
+def test_a_scan_exported_on_its_side_is_named_so(small_site, caplog):
+    """Stations whose up axis is the world's y (a registration exported y-up) are warned about where the database's
+    and the map's positions are sampled; upright stations, or none, are not."""
+    import dataclasses
+
+    from services.geometry.se3 import Pose
+    from services.io.scans import load_scan
+    from services.io.scan import level_warning
+    from services.relocalize.roi import RoiConfig, sample_positions
+
+    scan = load_scan(small_site[0] / "scan.ply")
+    assert scan.stations and level_warning(scan) is None  # the simulator's scanner stands upright
+    sideways = dataclasses.replace(scan, stations=[Pose.from_rotvec_t([-np.pi / 2, 0, 0], s.t) for s in scan.stations])
+    assert "world's +y, not +z" in level_warning(sideways)
+    assert level_warning(dataclasses.replace(scan, stations=[])) is None
+    with caplog.at_level("WARNING", logger="services.relocalize.roi"):
+        sample_positions(sideways, RoiConfig(box=(1, 1, 1.4, 3, 3, 1.6)))
+    assert "stand 90-90 deg from upright" in caplog.text
+
+
 def _twin(db, shift, keep: float = 1.0):
     """``db`` and a copy of it moved by ``shift`` (or one copy per row of it): a site made of identical places
     (``keep`` < 1: each copy keeps that share of each view's features, a look-alike rather than a twin)."""

@@ -411,6 +411,7 @@ def test_cli_scan_info_and_convert(tmp_path, capsys):
     assert main(["scan", "info", str(p)]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["points"] == N and summary["from_cache"] is False and summary["has_color"] is True
+    assert summary["upright"] is None  # no stations in the file: nothing to tell it by
     assert main(["scan", "info", str(p)]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["from_cache"] is True
 

@@ -69,6 +69,7 @@ def register(sub) -> None:
 
 def run_info(args) -> int:
     from services.cli import emit_summary
+    from services.io.scan import level_warning
     from services.io.scans import load_scan, scan_info
 
     scan = load_scan(args.scan, cache=not args.no_cache, require_color=not args.allow_no_color)
@@ -81,10 +82,14 @@ def run_info(args) -> int:
     print(f"  origin: {' '.join(f'{v:.3f}' for v in s['origin'])}"
           + (" (coordinates stored relative to it)" if any(s["origin"]) else ""))
     print(f"  colour: {'yes' if s['has_color'] else 'no (grey)'}")
-    print(f"  stations: {len(s['stations'])}")
+    why = level_warning(scan)
+    print(f"  stations: {len(s['stations'])}" + (", upright (z up)" if scan.stations and not why else ""))
+    if why:
+        print(f"  WARNING: {why}")
     for k, st in enumerate(s["stations"]):
         print(f"    {k}: t = {st[0]:.3f} {st[1]:.3f} {st[2]:.3f}, q_xyzw = {st[3]:.4f} {st[4]:.4f} {st[5]:.4f} {st[6]:.4f}")
     print(f"  dropped: {s['dropped_nonfinite']} non-finite, {s['dropped_invalid']} flagged invalid")
+    s["upright"] = (why is None) if scan.stations else None  # None: no stations to tell
     emit_summary(s)
     return 0
 

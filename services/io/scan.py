@@ -14,7 +14,7 @@ import numpy as np
 
 from services.geometry.se3 import Pose
 
-__all__ = ["Scan", "ScanError"]
+__all__ = ["Scan", "ScanError", "level_warning"]
 
 
 class ScanError(ValueError):
@@ -58,3 +58,22 @@ class Scan:
         there, over the full scan's, which the next full load then recomputed)."""
         meta = {k: v for k, v in self.meta.items() if k not in ("cache_dir", "from_cache")}
         return Scan(self.xyz[index], self.rgb[index], self.origin.copy(), list(self.stations), self.source, meta)
+
+
+def level_warning(scan: Scan, max_tilt_deg: float = 30.0) -> str | None:
+    """Why the scan looks exported on its side, or None. A scanner stands levelled, its z axis up; when every station
+    of a scan has its z axis over ``max_tilt_deg`` from the world's z (a registration exported y-up), positions set
+    above the floor along z and views levelled to z face walls and floors, and nothing matches. Stations with no
+    pose (identity) say nothing; nor does a scan without stations."""
+    if not scan.stations:
+        return None
+    ups = np.array([s.R[:, 2] for s in scan.stations])
+    tilt = np.degrees(np.arccos(np.clip(ups[:, 2], -1.0, 1.0)))
+    if not (tilt > max_tilt_deg).all():
+        return None
+    mean = ups.mean(axis=0)
+    k = int(np.argmax(np.abs(mean)))
+    axis = ("-" if mean[k] < 0 else "+") + "xyz"[k]
+    return (f"the scan's {len(ups)} station(s) stand {tilt.min():.0f}-{tilt.max():.0f} deg from upright: their up axis "
+            f"is the world's {axis}, not +z. cristal takes z as up (camera heights above the floor, levelled views); "
+            f"export the registration z-up (docs/CONVENTIONS.md)")

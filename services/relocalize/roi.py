@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.io.scan import Scan
+from services.io.scan import Scan, level_warning
 
 __all__ = ["RoiConfig", "sample_positions"]
 
@@ -55,6 +55,10 @@ def _voxel_points(scan: Scan, voxel: float = 0.05, max_points: int = 2_000_000) 
 def sample_positions(scan: Scan, cfg: RoiConfig = RoiConfig()) -> np.ndarray:
     """World positions (N, 3) in free space inside the region of interest, on a uniform grid."""
     from scipy.spatial import cKDTree
+
+    why = level_warning(scan)
+    if why:
+        log.warning(why)
 
     pts = _voxel_points(scan)  # scan-local coordinates
     tree = cKDTree(pts)
