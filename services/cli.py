@@ -92,6 +92,14 @@ def add_odometry_args(p: argparse.ArgumentParser, use: str) -> None:
                         "every pose here) or opengl (x right, y up, z backward: ARKit, ARCore, game engines)")
 
 
+def roi_polygon(vertices: list[str]) -> tuple[tuple[float, float], ...]:
+    """``--roi-polygon X,Y ...`` (build-db, prebuild) as vertices; a clear error for anything else."""
+    try:
+        return tuple((float(v.split(",")[0]), float(v.split(",")[1])) for v in vertices)
+    except (ValueError, IndexError):
+        raise CliError(f"--roi-polygon: expected vertices as X,Y (e.g. 0,0 12,0 12,5 0,5), got {' '.join(vertices)}") from None
+
+
 def positions_picture(positions, out, **kw):
     """OUT.png beside a database (or MAPDIR/map.png): where it was rendered from, over the scan or the map's
     landmarks; None (logged) when it cannot be drawn: the database or map is written either way."""

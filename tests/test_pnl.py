@@ -46,6 +46,9 @@ def test_prebuild_refuses_a_bad_supersampling_factor(pnl_site, tmp_path):
     assert main(["prebuild", str(root / "scan.ply"), "--camera", str(out / "seq" / "camera.json"), "--out",
                  str(tmp_path / "m"), "--supersample", "0"]) == 2
     assert not (tmp_path / "m").exists()
+    assert main(["prebuild", str(root / "scan.ply"), "--camera", str(out / "seq" / "camera.json"), "--out",
+                 str(tmp_path / "m"), "--roi-polygon", "0,0", "4"]) == 2  # an outline as build-db takes it, checked
+    assert not (tmp_path / "m").exists()
 
 def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
     import json

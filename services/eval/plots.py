@@ -220,7 +220,7 @@ def plot_positions_topdown(positions: np.ndarray, out_png: str | Path, scan: "Sc
     fig = _figure(8, 7)
     ax = fig.add_subplot()
     if len(X):
-        lo, hi = X[:, :2].min(axis=0) - 2.0, X[:, :2].max(axis=0) + 2.0
+        lo, hi = _box(X)
         _background(ax, lo, hi, float(X[:, 2].max()) + 0.5, scan, landmarks, max_points)
         ax.plot(X[:, 0], X[:, 1], "o", color=EST_COLOR, ms=4.5, mfc="none", mew=1.2, ls="none", zorder=3,
                 label=f"{label} ({len(X)})")

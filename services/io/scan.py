@@ -76,4 +76,4 @@ def level_warning(scan: Scan, max_tilt_deg: float = 30.0) -> str | None:
     axis = ("-" if mean[k] < 0 else "+") + "xyz"[k]
     return (f"the scan's {len(ups)} station(s) stand {tilt.min():.0f}-{tilt.max():.0f} deg from upright: their up axis "
             f"is the world's {axis}, not +z. cristal takes z as up (camera heights above the floor, levelled views); "
-            f"export the registration z-up (docs/CONVENTIONS.md)")
+            f"export the registration z-up, as levelled scanners record it")

@@ -232,17 +232,8 @@ def _torch_threads() -> None:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))  # 1 unless -j: faster on a loaded 2-core box
 
 
-def _polygon(vertices: list[str]) -> tuple[tuple[float, float], ...]:
-    from services.cli import CliError
-
-    try:
-        return tuple((float(v.split(",")[0]), float(v.split(",")[1])) for v in vertices)
-    except (ValueError, IndexError):
-        raise CliError(f"--roi-polygon: expected vertices as X,Y (e.g. 0,0 12,0 12,5 0,5), got {' '.join(vertices)}") from None
-
-
 def run_build_db(args) -> int:
-    from services.cli import emit_summary, positions_picture
+    from services.cli import emit_summary, positions_picture, roi_polygon
     from services.features.xfeat import XFeatExtractor
     from services.io.scans import load_scan
     from services.relocalize.database import DBConfig, build_database
@@ -253,7 +244,7 @@ def run_build_db(args) -> int:
     scan = load_scan(args.scan)
     pos = sample_positions(scan, RoiConfig(spacing=args.spacing, heights=tuple(args.heights), margin=args.margin,
                                            box=tuple(args.roi) if args.roi else None,
-                                           polygon=_polygon(args.roi_polygon) if args.roi_polygon else None))
+                                           polygon=roi_polygon(args.roi_polygon) if args.roi_polygon else None))
     if len(pos) == 0:
         raise ValueError("no position in free space inside the region of interest: check --roi, --heights, --margin")
     renderer = Renderer(scan, device=args.device)

@@ -43,6 +43,8 @@ def register(sub) -> None:
     p.add_argument("--heights", type=float, nargs="+", default=[1.5], help="camera heights above the floor (default 1.5)")
     p.add_argument("--margin", type=float, default=0.5, help="free space around each position in metres (default 0.5)")
     p.add_argument("--roi", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"), help="box in world coordinates")
+    p.add_argument("--roi-polygon", nargs="+", metavar="X,Y",
+                   help="floor-plan outline in world x,y (>= 3 vertices); positions at --heights above the floor inside it")
     p.add_argument("--stage", choices=["full", "filter", "splat"], default="full",
                    help="renderer stage: full = neural (default), splat = plain point splats (ablation)")
     p.add_argument("--supersample", type=int, metavar="K",
@@ -71,7 +73,7 @@ def run_prebuild(args) -> int:
     import time
     from pathlib import Path
 
-    from services.cli import CliError, emit_summary, positions_picture
+    from services.cli import CliError, emit_summary, positions_picture, roi_polygon
     from services.geometry.camera import Camera
     from services.io.scans import load_scan
     from services.prebuild.builder import BuildConfig, build_map
@@ -98,7 +100,8 @@ def run_prebuild(args) -> int:
 
         scan = random_decimate(scan, args.decimate)
     pos = sample_positions(scan, RoiConfig(spacing=args.spacing, heights=tuple(args.heights), margin=args.margin,
-                                           box=tuple(args.roi) if args.roi else None))
+                                           box=tuple(args.roi) if args.roi else None,
+                                           polygon=roi_polygon(args.roi_polygon) if getattr(args, "roi_polygon", None) else None))
     if len(pos) == 0:
         raise CliError("no position in free space inside the region of interest: check --roi, --heights, --margin")
     renderer = Renderer(scan, device=args.device, holefill=args.stage == "full")
