@@ -215,9 +215,8 @@ def _picture(traj: Trajectory, rows: list, seq, out, fallback):
 
         records = [FrameRecord(s, {"server": "TRACKING", "local": "LOCAL"}.get(src, "LOST")) for s, src, *_ in rows]
         idx = getattr(getattr(fallback, "loc", None), "idx", None)
-        gt = getattr(seq, "groundtruth", None)
-        gt = Trajectory(gt.stamps[:len(rows)], gt.poses[:len(rows)]) if gt is not None else None
-        return plot_localization_topdown(traj, records, picture_path(out), landmarks=getattr(idx, "pos", None), gt=gt,
+        return plot_localization_topdown(traj, records, picture_path(out), landmarks=getattr(idx, "pos", None),
+                                         gt=getattr(seq, "groundtruth", None),
                                          title=f"streamed (top view): {len(traj)}/{len(rows)} frames with a pose")
     except Exception as e:  # noqa: BLE001 (no matplotlib on a headset: the trajectory and sources are written)
         log.warning("no top-view picture of the stream: %s", e)

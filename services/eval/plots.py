@@ -147,7 +147,7 @@ def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Pat
     """What a localization did, seen from above over the scan (or a map's landmarks): the poses reported, joined
     frame to frame and broken where frames got none; the camera's heading every few poses; the relocalizations;
     each LOST stretch as a dashed line from the pose before it to the pose after it, with its length in frames;
-    the ground truth when there is one. ``records``: the run's services.io.frame_log.FrameRecord, every frame in
+    the ground truth of the frames the run covered when there is one. ``records``: the run's services.io.frame_log.FrameRecord, every frame in
     order (status RELOCALIZED, BACKFILLED and, from a streaming client, LOCAL are marked). For a recording with no
     ground truth this is the picture to look at first."""
     poses = est.as_dict()
@@ -155,7 +155,8 @@ def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Pat
     T = [poses.get(r.stamp) for r in records]
     has = np.array([t is not None for t in T], bool)
     P = np.array([t.t if t is not None else (np.nan, np.nan, np.nan) for t in T], float).reshape(-1, 3)
-    G = gt.positions() if gt is not None and len(gt) else np.zeros((0, 3))
+    seen = {r.stamp for r in records}  # the ground truth of the frames the run covered
+    G = np.array([T.t for s, T in gt if s in seen]).reshape(-1, 3) if gt is not None else np.zeros((0, 3))
     both = np.vstack([P[has], G])
     lo, hi = _box(both) if len(both) else (np.zeros(2), np.ones(2))
     fig = _figure(9, float(np.clip(9 * (hi[1] - lo[1]) / (hi[0] - lo[0]) + 0.8, 4.5, 10)))  # the site's shape
