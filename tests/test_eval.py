@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 from services.eval.ape import DegenerateAlignment, associate, compute_ape, evaluate, umeyama
+from services.eval.plots import RELOC_COLOR
 from services.geometry.se3 import Pose, rotvec_to_rotmat
 from services.io.scan import Scan
 from services.io.trajectory import Trajectory, write_tum
 
-from _pictures import red_pixels
+from _pictures import pixels_of, red_pixels
 
 
 def walk(n=60, seed=0) -> Trajectory:
@@ -164,7 +165,7 @@ def test_plots_write_pngs(tmp_path):
     scan = Scan(np.zeros((0, 3)), np.zeros((0, 3)))
     for name, s in (("topdown.png", _scan()), ("topdown_noscan.png", None), ("topdown_emptyscan.png", scan)):
         out = plot_trajectory_topdown(gt, est, tmp_path / "sub" / name, scan=s)
-        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10000
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and red_pixels(out) > 500  # the estimate is drawn
     out = plot_errors(compute_ape(gt, est, "se3"), tmp_path / "errors.png")
     assert out.read_bytes()[:4] == b"\x89PNG" and out.stat().st_size > 10000
     assert not list(tmp_path.rglob("*.tmp"))
@@ -245,7 +246,8 @@ def test_cli_eval_weighs_errors_against_the_predicted_uncertainty(tmp_path, caps
     write_tum(tmp_path / "gt.txt", gt)
     write_tum(tmp_path / "est.txt", est)
     recs = [FrameRecord(s, "LOST", reason="no place") if i in (3, 4) else
-            FrameRecord(s, "TRACKING", 100, 0.8, 0.01 if i >= 42 else 0.05, 1.0) for i, s in enumerate(gt.stamps)]
+            FrameRecord(s, "RELOCALIZED" if i == 0 else "TRACKING", 100, 0.8, 0.01 if i >= 42 else 0.05, 1.0)
+            for i, s in enumerate(gt.stamps)]
     write_frame_log(frame_log_path(tmp_path / "est.txt"), recs)
     rc = main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--align", "se3", "--plots",
                str(tmp_path / "plots")])
@@ -254,6 +256,7 @@ def test_cli_eval_weighs_errors_against_the_predicted_uncertainty(tmp_path, caps
     assert rc == 0 and s["uncertainty_n"] == 48 and s["uncertainty_beyond_3sigma"] == 8, s  # (in the scan frame)
     assert s["uncertainty_t_ratio_median"] == pytest.approx(2.0) and "8 beyond 3 sigma" in out
     assert (tmp_path / "plots" / "uncertainty.png").stat().st_size > 10_000
+    assert pixels_of(tmp_path / "plots" / "trajectory.png", RELOC_COLOR) > 20  # the log's relocalization marked
     # a log that is not one: a clear error, exit 2
     (tmp_path / "x.csv").write_text("stamp,pose\n1,2\n")
     assert main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--frame-log", str(tmp_path / "x.csv")]) == 2

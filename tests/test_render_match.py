@@ -780,11 +780,13 @@ def test_the_exposure_is_calibrated_from_several_fast_frames_not_one(rm_setup):
     tr = RenderMatchTracker(renderer, ext, None, RMConfig())
     fr = _Frame(seq.read(0).image, seq.camera, {}, (Pose.identity(), 1 / 30), 0.0, None)  # 1/30 s between frames
     fracs = np.asarray(tr.cfg.calib_fractions)
-    votes = [fracs == 1.0, fracs == 0.3, fracs == 0.3]  # a first frame for the whole interval, then two for 0.3 of it
+    need = tr.cfg.calib_min_frames
+    assert need >= 3  # (a first frame can be outvoted, not tied)
+    votes = [fracs == 1.0] + [fracs == 0.3] * (need - 1)  # a first frame for the whole interval, then the rest for 0.3
     for n, vote in enumerate(votes, start=1):
         tr.calib_scores += vote.astype(float)
         tr.calib_intervals.append(1 / 30)
-        if n < 3:  # neither the first frame's whole interval nor a tie with it
+        if n < need:  # neither the first frame's whole interval nor a tie with it
             assert tr.exposure_s is None and tr._exposure(fr) == pytest.approx(tr.cfg.exposure_prior / 30)
     assert tr.exposure_s == pytest.approx(0.3 / 30, abs=0.1 / 30)
 

@@ -84,6 +84,24 @@ def _uncertainty(args, gt, est, results) -> dict | None:
     return c
 
 
+def _records(args, gt, est) -> list | None:
+    """The ground truth's frames with their status from the frame log (relocalizations marked in the picture), or
+    None without a readable one."""
+    from pathlib import Path
+
+    from services.io.frame_log import FrameLogError, FrameRecord, frame_log_path, read_frame_log
+
+    path = Path(args.frame_log or frame_log_path(args.est))
+    try:
+        log_ = read_frame_log(path) if path.is_file() else None
+    except FrameLogError:
+        return None  # (_uncertainty has said why)
+    if log_ is None:
+        return None
+    poses = est.as_dict()
+    return [log_.get(s) or FrameRecord(s, "TRACKING" if s in poses else "LOST") for s in gt.stamps]
+
+
 def run(args) -> int:
     import json
     from pathlib import Path
@@ -127,7 +145,7 @@ def run(args) -> int:
 
             scan = load_scan(args.scan, require_color=False)  # grey points are fine for a plot
         out = Path(args.plots)
-        files = [plot_trajectory_topdown(gt, est, out / "trajectory.png", scan=scan,
+        files = [plot_trajectory_topdown(gt, est, out / "trajectory.png", scan=scan, records=_records(args, gt, est),
                                          title=f"{Path(args.est).name} vs {Path(args.gt).name} (top view)")]
         files += [plot_errors(r, out / f"errors_{name}.png") for name, r in results.items()]
         if check is not None and check["n"]:

@@ -100,45 +100,17 @@ def _background(ax, lo: np.ndarray, hi: np.ndarray, z_max: float, scan: "Scan | 
 
 
 def plot_trajectory_topdown(gt: Trajectory, est: Trajectory, out_png: str | Path, scan: "Scan | None" = None,
-                            title: str = "ground truth vs estimate (top view)", max_points: int = 200_000) -> Path:
-    """Ground truth and estimate in the world x-y plane (z is up), equal aspect, over the scan if given.
+                            title: str = "ground truth vs estimate (top view)", max_points: int = 200_000,
+                            records: list | None = None) -> Path:
+    """Ground truth and estimate from above, over the scan if given: :func:`plot_localization_topdown` over the
+    ground truth's frames. ``records`` (the run's frame log, when there is one) gives each frame's status; without
+    it a frame of the ground truth is TRACKING where the estimate has a pose and LOST where not."""
+    if records is None:
+        from services.io.frame_log import FrameRecord
 
-    The estimate is drawn in ground-truth frame order and breaks where frames got no pose;
-    those frames are marked on the ground truth. Scan points above the highest camera
-    + 0.5 m are left out (ceilings would hide the floor plan).
-    """
-    P = gt.positions()
-    est_by_stamp = est.as_dict()
-    E = np.full_like(P, np.nan)
-    for i, s in enumerate(gt.stamps):
-        if s in est_by_stamp:
-            E[i] = est_by_stamp[s].t
-    lost = np.isnan(E[:, 0])
-    both = np.vstack([P, E[~lost]]) if len(P) else est.positions()
-
-    fig = _figure(8, 7)
-    ax = fig.add_subplot()
-    if len(both):
-        lo, hi = _box(both)
-        _background(ax, lo, hi, float(both[:, 2].max()) + 0.5, scan, None, max_points)
-    ax.plot(P[:, 0], P[:, 1], "-", color=GT_COLOR, lw=1.6, label=f"ground truth ({len(gt)} frames)", zorder=2)
-    n_est = int((~lost).sum())
-    ax.plot(E[:, 0], E[:, 1], "-", color=EST_COLOR, lw=1.2, label=f"estimate ({n_est} frames with a pose)", zorder=3)
-    if lost.any():
-        ax.plot(P[lost, 0], P[lost, 1], "x", color=LOST_COLOR, ms=4, mew=1,
-                label=f"no pose ({int(lost.sum())} frames)", zorder=4)
-    if len(P):
-        ax.plot(*P[0, :2], "o", color=GT_COLOR, ms=9, mfc="none", mew=2, label="start", zorder=5)
-    if n_est:
-        first = E[~lost][0]
-        ax.plot(*first[:2], "o", color=EST_COLOR, ms=6, zorder=5)
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(title)
-    ax.grid(True, lw=0.3, alpha=0.5)
-    ax.legend(loc="best", fontsize=8, framealpha=0.85)
-    return _save(fig, out_png)
+        poses = est.as_dict()
+        records = [FrameRecord(s, "TRACKING" if s in poses else "LOST") for s in gt.stamps]
+    return plot_localization_topdown(est, records, out_png, scan=scan, gt=gt, title=title, max_points=max_points)
 
 
 def plot_localization_topdown(est: Trajectory, records: list, out_png: str | Path, scan: "Scan | None" = None,
