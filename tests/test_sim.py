@@ -95,3 +95,43 @@ def test_sim_cli_and_view(tmp_path, capsys, small_site):
                  "--out", str(tmp_path / "x.png")]) == 2
     assert main(["sim-view", str(out), "--pose", "1 2 3", "--camera", str(tmp_path / "cam.json"),
                  "--out", str(tmp_path / "x.png")]) == 2
+
+
+def test_a_scan_with_a_real_registrations_flaws_has_them(tmp_path):
+    """``--scan-flaws``: each station is registered a little off (its points moved rigidly with it, and the station
+    pose written is the registered one), its panorama exposed apart, and returns on range edges float between the two
+    surfaces (mixed pixels). Without flaws the scan is the perfect one, draw for draw (test_same_seed_same_site)."""
+    from services.io.scans import load_scan
+    from services.sim.lidar import FLAWS, LidarConfig, ScanFlaws, simulate_station
+    from services.sim.scenes import make_scene
+    from services.sim.shading import SceneRenderer
+    from services.sim.site import config_for
+
+    perfect = config_for("office", seed=3, frames=2, width=160, height=120, lidar_step_deg=0.8)
+    flawed = config_for("office", seed=3, frames=2, width=160, height=120, lidar_step_deg=0.8, scan_flaws="poor")
+    assert flawed.flaws == FLAWS["poor"] and not perfect.flaws.any
+    generate_site(perfect, tmp_path / "a")
+    generate_site(flawed, tmp_path / "b")
+    a, b = load_scan(tmp_path / "a" / "scan.ply"), load_scan(tmp_path / "b" / "scan.ply")
+    for sa, sb in zip(a.stations, b.stations, strict=True):
+        dt, dr = sa.distance_to(sb)
+        assert 1e-4 < dt < 0.06 and 1e-4 < dr < 0.2, (dt, dr)  # 1 cm / 0.03 deg 1-sigma per axis
+
+    # one station, the same rays: only the flaws differ
+    scene = make_scene("office", 3)
+    renderer = SceneRenderer(scene.mesh, texture_seed=3)
+    cfg = LidarConfig(step_deg=0.8, dropout=0.0, grazing_cos=1e-9, range_noise_m=0.0, colour_noise=0.0)
+    centre = scene.stations[0]
+
+    def station(flaws):
+        return simulate_station(renderer, centre, scene.scan_lighting, 1.0, cfg, np.random.default_rng(0), flaws,
+                                np.random.default_rng(1))
+
+    xyz0, rgb0 = station(None)
+    xyz1, rgb1 = station(ScanFlaws(mixed_pixels=1.0))
+    assert len(xyz0) == len(xyz1) and np.array_equal(rgb0, rgb1)
+    moved = np.linalg.norm(xyz1 - xyz0, axis=1)
+    assert 0.002 < np.mean(moved > 0.02) < 0.2  # the silhouettes' returns, not the surfaces'
+    _, rgb2 = station(ScanFlaws(gain=0.5))
+    ratio = rgb2[rgb0 > 30].astype(float) / rgb0[rgb0 > 30]
+    assert np.std(ratio) < 0.2 and abs(np.median(ratio) - 1.0) > 0.02  # one exposure for the whole panorama

@@ -4,6 +4,11 @@ Models what matters for localization: a regular angular grid (so density falls w
 range and surfaces seen at grazing angles get sparse), Gaussian range noise (~2 mm),
 random and grazing-angle dropouts, a minimum and maximum range, and colours taken by the
 scanner's camera under the lighting of scan day (not the lighting the cameras see later).
+
+A real registered scan has flaws a perfect simulation lacks (``ScanFlaws``, off by default): each station registered
+a few millimetres and hundredths of a degree off, each station's panorama exposed and white-balanced a little
+differently, and *mixed pixels*, returns whose beam straddled a range edge and came back from between the two
+surfaces (points floating in the air along every silhouette, where a scanner's own filter left them).
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from services.sim.materials import linear_to_srgb
 from services.sim.scenes import Lighting
 from services.sim.shading import SceneRenderer
 
-__all__ = ["LidarConfig", "simulate_station", "scan_exposure"]
+__all__ = ["LidarConfig", "ScanFlaws", "FLAWS", "simulate_station", "scan_exposure", "misregister"]
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +38,31 @@ class LidarConfig:
     min_range_m: float = 0.4
     max_range_m: float = 80.0
     colour_noise: float = 1.5  # 1-sigma in 8-bit levels
+
+
+@dataclass(frozen=True)
+class ScanFlaws:
+    """What a registered survey scan gets wrong, per station (1-sigma values; zeros: a perfect scan)."""
+
+    registration_m: float = 0.0  # the station's position error, per axis
+    registration_deg: float = 0.0  # ... and its orientation error, per axis
+    gain: float = 0.0  # its panorama's exposure error (log gain)
+    tint: float = 0.0  # ... and white balance error (log gain per channel)
+    mixed_pixels: float = 0.0  # share of the returns on a range edge that come back from between the two surfaces
+    edge_m: float = 0.05  # a range edge: a neighbouring ray's range differs by more than this
+
+    @property
+    def any(self) -> bool:
+        return any((self.registration_m, self.registration_deg, self.gain, self.tint, self.mixed_pixels))
+
+
+FLAWS = {  # ``cristal sim --scan-flaws NAME``
+    "none": ScanFlaws(),
+    # a good registration (2-4 mm between setups), HDR panoramas a little apart, the scanner's mixed-pixel filter on
+    "survey": ScanFlaws(registration_m=0.003, registration_deg=0.01, gain=0.1, tint=0.03, mixed_pixels=0.3),
+    # a hurried one: centimetre registration, panoramas visibly apart, no mixed-pixel filter
+    "poor": ScanFlaws(registration_m=0.01, registration_deg=0.03, gain=0.3, tint=0.08, mixed_pixels=1.0),
+}
 
 
 def station_directions(cfg: LidarConfig) -> np.ndarray:
@@ -58,11 +88,47 @@ def scan_exposure(renderer: SceneRenderer, stations: np.ndarray, lighting: Light
     return float(0.18 / max(np.median(meds), 1e-6)) if meds else 1.0
 
 
+def _mixed_ranges(t: np.ndarray, shape: tuple[int, int], flaws: ScanFlaws, rng: np.random.Generator) -> np.ndarray:
+    """Ranges ``t`` (one per ray of the (elevation, azimuth) grid ``shape``; inf where nothing was hit) with
+    ``flaws.mixed_pixels`` of the rays on a range edge returning from a random point between their own surface and
+    the farther or nearer one their neighbour saw."""
+    T = t.reshape(shape)
+    best = np.zeros(shape)  # the largest range step to a neighbour, signed
+    for axis in (0, 1):
+        for step in (-1, 1):
+            nb = np.roll(T, step, axis=axis)
+            if axis == 0:  # no wrap over the poles
+                (nb[0] if step == 1 else nb[-1])[:] = np.inf
+            both = np.isfinite(T) & np.isfinite(nb)
+            d = np.zeros(shape)
+            d[both] = nb[both] - T[both]
+            best = np.where(np.abs(d) > np.abs(best), d, best)
+    edge = (np.abs(best) > flaws.edge_m) & (rng.random(shape) < flaws.mixed_pixels)
+    out = T.copy()
+    out[edge] += rng.random(int(edge.sum())) * best[edge]
+    return out.reshape(-1)
+
+
+def misregister(xyz: np.ndarray, centre: np.ndarray, flaws: ScanFlaws, rng: np.random.Generator):
+    """One station's points placed by a registration ``flaws`` off: (xyz, the station's registered rotation, centre)."""
+    from services.geometry.se3 import rotvec_to_rotmat
+
+    R = rotvec_to_rotmat(np.deg2rad(rng.normal(0.0, flaws.registration_deg, 3)))
+    c = centre + rng.normal(0.0, flaws.registration_m, 3)
+    return (xyz - centre) @ R.T + c, R, c
+
+
 def simulate_station(renderer: SceneRenderer, centre: np.ndarray, lighting: Lighting, exposure: float,
-                     cfg: LidarConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (xyz float64 (N,3) world, rgb uint8 (N,3)) of one station's first returns."""
+                     cfg: LidarConfig, rng: np.random.Generator, flaws: ScanFlaws | None = None,
+                     flaws_rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (xyz float64 (N,3) world, rgb uint8 (N,3)) of one station's first returns. With ``flaws``: its mixed
+    pixels and its panorama's exposure and white balance (drawn from ``flaws_rng``; the registration error is
+    :func:`misregister`'s)."""
     dirs = station_directions(cfg)
     rad, t, tri = renderer.cast(centre, dirs, lighting, spread=np.deg2rad(cfg.step_deg), tmax=cfg.max_range_m)
+    if flaws is not None and flaws.mixed_pixels > 0:
+        n_el = len(np.arange(cfg.elev_min_deg, cfg.elev_max_deg + 1e-9, cfg.step_deg))
+        t = _mixed_ranges(np.where(np.isfinite(t), t, np.inf), (n_el, len(dirs) // n_el), flaws, flaws_rng)
     hit = np.isfinite(t) & (t >= cfg.min_range_m)
     n = renderer.normals[np.maximum(tri, 0)]
     cosi = np.abs(np.einsum("ij,ij->i", n, dirs))
@@ -71,7 +137,10 @@ def simulate_station(renderer: SceneRenderer, centre: np.ndarray, lighting: Ligh
     keep &= ~(grazing & (rng.random(len(t)) < 0.8 * (1 - cosi / cfg.grazing_cos)))
     r = t[keep] + rng.normal(0.0, cfg.range_noise_m, keep.sum())
     xyz = centre + dirs[keep] * r[:, None]
-    srgb = linear_to_srgb(rad[keep] * exposure) * 255.0
+    gain = np.ones(3)
+    if flaws is not None and (flaws.gain or flaws.tint):
+        gain = np.exp(flaws_rng.normal(0.0, flaws.gain) + flaws_rng.normal(0.0, flaws.tint, 3))
+    srgb = linear_to_srgb(rad[keep] * exposure * gain) * 255.0
     srgb += rng.normal(0.0, cfg.colour_noise, srgb.shape)
     rgb = np.clip(np.round(srgb), 0, 255).astype(np.uint8)
     log.debug("station %s: %d rays, %d returns", centre, len(t), keep.sum())

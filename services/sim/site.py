@@ -27,7 +27,7 @@ from services.io.atomic import atomic_write_text
 from services.io.scan import Scan
 from services.io.sequence import SequenceWriter
 from services.log import progress
-from services.sim.lidar import LidarConfig, scan_exposure, simulate_station
+from services.sim.lidar import FLAWS, LidarConfig, ScanFlaws, misregister, scan_exposure, simulate_station
 from services.sim.materials import linear_to_srgb
 from services.sim.mesh import Mesh
 from services.sim.scenes import Lighting, Scene, make_scene
@@ -46,6 +46,7 @@ class SiteConfig:
     preset: str = "office"
     seed: int = 1
     lidar: LidarConfig = field(default_factory=LidarConfig)
+    flaws: ScanFlaws = field(default_factory=ScanFlaws)  # what a real registered scan gets wrong (none by default)
     sequences: int = 1
     frames: int = 300
     fps: float = 30.0
@@ -82,13 +83,18 @@ def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
     t0 = time.perf_counter()
     exposure = scan_exposure(renderer, scene.stations, scene.scan_lighting, cfg.seed)
     rng = np.random.default_rng([cfg.seed, 1])
-    xyz_parts, rgb_parts = [], []
-    for c in progress(scene.stations, desc="LiDAR stations", total=len(scene.stations), unit="station"):
-        xyz, rgb = simulate_station(renderer, c, scene.scan_lighting, exposure, cfg.lidar, rng)
+    xyz_parts, rgb_parts, stations = [], [], []
+    for k, c in enumerate(progress(scene.stations, desc="LiDAR stations", total=len(scene.stations), unit="station")):
+        frng = np.random.default_rng([cfg.seed, 3, k]) if cfg.flaws.any else None  # (a perfect scan draws as before)
+        xyz, rgb = simulate_station(renderer, c, scene.scan_lighting, exposure, cfg.lidar, rng,
+                                    cfg.flaws if cfg.flaws.any else None, frng)
+        R, centre = np.eye(3), c
+        if cfg.flaws.registration_m or cfg.flaws.registration_deg:
+            xyz, R, centre = misregister(xyz, c, cfg.flaws, frng)
         xyz_parts.append(xyz)
         rgb_parts.append(rgb)
+        stations.append(Pose(R, centre))  # where the registration put the station
     world = np.concatenate(xyz_parts)
-    stations = [Pose(np.eye(3), c) for c in scene.stations]
     scan = Scan(world.astype(np.float32), np.concatenate(rgb_parts), np.zeros(3), stations)
     del world
     from services.io.scans import save_ply
@@ -202,6 +208,11 @@ def config_for(preset: str, **overrides) -> SiteConfig:
     step = overrides.pop("lidar_step_deg", None)
     if step is not None:
         base = replace(base, lidar=replace(base.lidar, step_deg=float(step)))
+    flaws = overrides.pop("scan_flaws", None)
+    if flaws is not None:
+        if flaws not in FLAWS:
+            raise ValueError(f"unknown scan flaws {flaws!r}; choose from {', '.join(FLAWS)}")
+        base = replace(base, flaws=FLAWS[flaws])
     readout = overrides.pop("readout_s", None)
     if readout is not None:
         base = replace(base, sensor=replace(base.sensor, readout_s=float(readout)))
