@@ -11,6 +11,7 @@ examples:
   cristal scan convert survey.e57 scan.ply         all E57 scans merged into one PLY in the world frame
   cristal scan convert big.laz small.ply --voxel 0.02    one point per 2 cm voxel (colour = voxel mean)
   cristal scan convert big.ply half.ply --fraction 0.5   a random half (same --seed, same half)
+  cristal scan convert raw.e57 scan.ply --drop-floating  without the points that lie on no surface (mixed pixels)
 
 formats: .ply (binary or ASCII; uchar, ushort or float colours), .e57 (every scan, moved by its pose
 into the file's world frame), .las/.laz (16-bit colours scaled to 8 bit). Points with NaN/inf
@@ -32,6 +33,14 @@ examples:
   cristal scan convert survey.e57 scan.ply                 merge all scans, binary PLY
   cristal scan convert scan.laz scan.ply --voxel 0.01      1 cm voxel grid: nearest-to-mean point, mean colour
   cristal scan convert scan.ply preview.ply --fraction 0.05 --ascii   5 % random subset as ASCII PLY
+  cristal scan convert raw.e57 scan.ply --drop-floating    drop mixed pixels, dust, passers-by's stray returns
+
+--drop-floating: a point with at most 3 others within 5 ray spacings (the scanner's angular step, read from the
+scan, at the distance to the nearest station) lies on no surface: a beam that straddled a silhouette came back from
+between the two surfaces (a mixed pixel). Such points paint over the surface behind them in every render, and the
+depth filter then takes them for foreground; on a simulated office with 30 % of its edge returns mixed, dropping them
+took Render & Match from 270 to 279 of 300 frames and 0.34 to 0.23 cm. Usually 0.1-0.5 % of a scan; a warning says
+when far more would go (surfaces seen only from far stations). Runs before --voxel / --fraction.
 
 Coordinates are written in the world frame: double when the scan needed an origin (large survey
 coordinates), float otherwise. Scanner stations are kept as 'comment cristal_station' header lines.
@@ -60,6 +69,8 @@ def register(sub) -> None:
     thin = c.add_mutually_exclusive_group()
     thin.add_argument("--voxel", type=float, metavar="M", help="keep one point per voxel of M metres")
     thin.add_argument("--fraction", type=float, metavar="F", help="keep a random fraction F in (0, 1] of the points")
+    c.add_argument("--drop-floating", action="store_true",
+                   help="drop points that lie on no surface: mixed pixels along silhouettes, dust (see below)")
     c.add_argument("--seed", type=int, default=0, help="random seed for --fraction (default 0)")
     c.add_argument("--ascii", action="store_true", help="write ASCII PLY (large; for inspection)")
     c.add_argument("--no-cache", action="store_true", help="parse the input; neither read nor write its cache")
@@ -109,6 +120,13 @@ def run_convert(args) -> int:
     t0 = time.perf_counter()
     scan = load_scan(args.input, cache=not args.no_cache, require_color=not args.allow_no_color)
     n_in = len(scan)
+    floating = None
+    if args.drop_floating:
+        from services.io.floating import drop_floating
+
+        scan = drop_floating(scan)
+        floating = scan.meta["floating_dropped"]
+        print(f"floating points dropped: {floating:,} ({100.0 * floating / max(n_in, 1):.2f} %)")
     if args.voxel is not None:
         scan = voxel_decimate(scan, args.voxel)
     elif args.fraction is not None:
@@ -117,5 +135,5 @@ def run_convert(args) -> int:
     dt = time.perf_counter() - t0
     print(f"{args.input} -> {out}: {n_in:,} -> {len(scan):,} points, {len(scan.stations)} stations, {dt:.1f} s")
     emit_summary({"input": str(args.input), "output": str(out), "points_in": n_in, "points_out": len(scan),
-                  "stations": len(scan.stations), "seconds": round(dt, 3)})
+                  "stations": len(scan.stations), "floating_dropped": floating, "seconds": round(dt, 3)})
     return 0
