@@ -59,6 +59,10 @@ SITES: dict[str, tuple[list[str], list[str], list[str]]] = {
                            "-0.1", "0.02", "0", "0", "0"], [], []),
     # a site no stop had seen before stop 61: the default camera on another layout
     "office-s90": (["--preset", "office", "--seed", "90"], [], []),
+    # the default office walk through a scan with a real registration's flaws (stop 61): stations a few mm and
+    # hundredths of a degree off, panoramas exposed apart, mixed pixels along silhouettes (services/sim/lidar.py)
+    "office-survey": (["--preset", "office", "--seed", "1", "--scan-flaws", "survey"], [], []),
+    "office-poor": (["--preset", "office", "--seed", "1", "--scan-flaws", "poor"], [], []),
     # its map takes ~45 min on 2 cores (RESULTS stop 33): --maps builds it only when --sites names it
     "warehouse-s3": (["--preset", "warehouse", "--seed", "3"], ["--spacing", "2"], ["--spacing", "2"]),
 }
