@@ -35,11 +35,11 @@ examples:
   cristal scan convert scan.ply preview.ply --fraction 0.05 --ascii   5 % random subset as ASCII PLY
   cristal scan convert raw.e57 scan.ply --drop-floating    drop mixed pixels, dust, passers-by's stray returns
 
---drop-floating: a point with at most 3 others within 5 ray spacings (the scanner's angular step, read from the
+--drop-floating: a point with fewer than 3 others within 5 ray spacings (the scanner's angular step, read from the
 scan, at the distance to the nearest station) lies on no surface: a beam that straddled a silhouette came back from
 between the two surfaces (a mixed pixel). Such points paint over the surface behind them in every render, and the
 depth filter then takes them for foreground; on a simulated office with 30 % of its edge returns mixed, dropping them
-took Render & Match from 270 to 279 of 300 frames and 0.34 to 0.23 cm. Usually 0.1-0.5 % of a scan; a warning says
+took Render & Match from 270 to 278 of 300 frames and 0.34 to 0.20 cm. Usually 0.1-0.5 % of a scan; a warning says
 when far more would go (surfaces seen only from far stations). Runs before --voxel / --fraction.
 
 Coordinates are written in the world frame: double when the scan needed an origin (large survey

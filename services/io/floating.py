@@ -7,7 +7,7 @@ number says: a floating point is the nearest thing in its pixel, so it paints it
 behind, and the hierarchical depth filter then takes it for foreground and removes the true surface around it as
 "background seen through a hole". Measured (`benchmarks/RESULTS.md`, stop 61: the office walk through a scan with 30 %
 of its edge returns mixed, 0.36 % of the points): Render & Match 270/300 at 0.34 cm / 0.054°; the scan with the points
-this drops, 279 at 0.23 cm / 0.037° (the perfect scan: 281 at 0.19 / 0.030).
+this drops, 278 at 0.20 cm / 0.036° (the perfect scan: 281 at 0.19 / 0.030; cleaned, 279 at 0.21 / 0.040).
 
 The test is density against what a surface would have there: a point on a surface has neighbours at the scanner's
 ray spacing in every direction; a floating one has few. The spacing grows with the distance from the station, so the
