@@ -60,9 +60,12 @@ def floating_points(scan: Scan, spacings: float = 5.0, min_neighbours: int = 3, 
         log.info("floating points: no stations, one radius %.3f m", fixed)
 
     # tiles in x-y, each searched with the tiles around it (a radius never exceeds a tile)
-    ij = np.floor((xyz[:, :2] - xyz[:, :2].min(axis=0)) / tile_m).astype(np.int64)
-    ny = int(ij[:, 1].max()) + 3
-    key = (ij[:, 0] + 1) * ny + (ij[:, 1] + 1)  # (a ring of empty tiles around: no edge cases below)
+    lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    ny = int((hi[1] - lo[1]) // tile_m) + 3
+    key = np.empty(n, np.int64)
+    for a in range(0, n, 10_000_000):  # in chunks: a survey scan's 300 M points would need GBs of temporaries at once
+        ij = np.floor((xyz[a:a + 10_000_000, :2] - lo) / np.float32(tile_m)).astype(np.int64)
+        key[a:a + 10_000_000] = (ij[:, 0] + 1) * ny + (ij[:, 1] + 1)  # (a ring of empty tiles around: no edge cases)
     order = np.argsort(key, kind="stable")
     keys, starts = np.unique(key[order], return_index=True)
     tiles = dict(zip(keys.tolist(), np.split(order, starts[1:])))
