@@ -103,17 +103,12 @@ def roi_polygon(vertices: list[str]) -> tuple[tuple[float, float], ...]:
 def positions_picture(positions, out, **kw):
     """OUT.png beside a database (or MAPDIR/map.png): where it was rendered from, over the scan or the map's
     landmarks; None (logged) when it cannot be drawn: the database or map is written either way."""
-    import logging
+    from services.eval.plots import drawn, picture_path, plot_positions_topdown
 
-    try:
-        from services.eval.plots import picture_path, plot_positions_topdown
-
-        path = plot_positions_topdown(positions, picture_path(out), **kw)
+    path = drawn("the positions", plot_positions_topdown, positions, picture_path(out), **kw)
+    if path is not None:
         print(f"picture: {path} (the region of interest seen from above: are these where cameras go?)")
-        return path
-    except Exception as e:  # noqa: BLE001
-        logging.getLogger("cristal").warning("no picture of the positions: %s", e)
-        return None
+    return path
 
 
 def emit_summary(summary: dict) -> None:

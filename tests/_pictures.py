@@ -3,6 +3,8 @@
 import cv2
 import numpy as np
 
+from services.eval.plots import EST_COLOR
+
 
 def pixels_of(png, colour: str) -> int:
     """How many pixels of a PNG are ``colour`` ('#rrggbb'), give or take a little antialiasing."""
@@ -15,4 +17,4 @@ def pixels_of(png, colour: str) -> int:
 def red_pixels(png) -> int:
     """Pixels of the estimate's red (services.eval.plots.EST_COLOR): what a top view draws the reported poses and the
     sampled positions in."""
-    return pixels_of(png, "#d62728")
+    return pixels_of(png, EST_COLOR)

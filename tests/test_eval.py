@@ -261,3 +261,14 @@ def test_cli_eval_weighs_errors_against_the_predicted_uncertainty(tmp_path, caps
     (tmp_path / "x.csv").write_text("stamp,pose\n1,2\n")
     assert main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--frame-log", str(tmp_path / "x.csv")]) == 2
     assert "not a frame log" in capsys.readouterr().err
+
+
+def test_a_picture_that_cannot_be_drawn_costs_a_warning_not_the_run(tmp_path, caplog):
+    """Every command draws its picture through ``drawn`` after writing its outputs: a failure there is logged."""
+    from services.eval.plots import drawn, plot_positions_topdown
+
+    (tmp_path / "f").write_text("")  # a file where the picture's folder should be
+    with caplog.at_level("WARNING", logger="services.eval.plots"):
+        assert drawn("the positions", plot_positions_topdown, np.zeros((3, 3)), tmp_path / "f" / "x.png") is None
+    assert "no picture of the positions" in caplog.text
+    assert drawn("the positions", plot_positions_topdown, np.zeros((3, 3)), tmp_path / "x.png") == tmp_path / "x.png"

@@ -11,6 +11,8 @@ import pytest
 from _zenoh import config, cristal, endpoint, free_port, stop, wait_until
 from _pictures import pixels_of, red_pixels
 
+from services.eval.plots import LOCAL_COLOR
+
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
 
@@ -162,7 +164,7 @@ def test_killed_server_falls_back_within_a_deadline_and_hands_back(small_site, s
     assert lines[0].startswith("#") and len(lines) == len(s) + 1 and lines[6].split()[1] == "local"
     assert len(read_tum(out)) == len(s)
     picture = out.with_suffix(".png")  # the poses from above, the local fallback's marked
-    assert st.picture == picture and red_pixels(picture) > 100 and pixels_of(picture, "#9467bd") > 20
+    assert st.picture == picture and red_pixels(picture) > 100 and pixels_of(picture, LOCAL_COLOR) > 20
 
 
 def test_serve_and_stream_commands(small_site, small_site_db, tmp_path):

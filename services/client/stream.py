@@ -207,17 +207,13 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
 
 def _picture(traj: Trajectory, rows: list, seq, out, fallback):
     """TRAJ.png: the stream's poses from above (services.eval.plots.plot_localization_topdown), the local
-    fallback's marked, over its map's landmarks when it has one; None (logged) when it cannot be drawn: the
-    trajectory is written either way."""
-    try:
-        from services.eval.plots import picture_path, plot_localization_topdown
-        from services.io.frame_log import FrameRecord
+    fallback's marked, over its map's landmarks when it has one; None (logged) when it cannot be drawn (no matplotlib
+    on a headset): the trajectory and sources are written either way."""
+    from services.eval.plots import drawn, picture_path, plot_localization_topdown
+    from services.io.frame_log import FrameRecord
 
-        records = [FrameRecord(s, {"server": "TRACKING", "local": "LOCAL"}.get(src, "LOST")) for s, src, *_ in rows]
-        idx = getattr(getattr(fallback, "loc", None), "idx", None)
-        return plot_localization_topdown(traj, records, picture_path(out), landmarks=getattr(idx, "pos", None),
-                                         gt=getattr(seq, "groundtruth", None),
-                                         title=f"streamed (top view): {len(traj)}/{len(rows)} frames with a pose")
-    except Exception as e:  # noqa: BLE001 (no matplotlib on a headset: the trajectory and sources are written)
-        log.warning("no top-view picture of the stream: %s", e)
-        return None
+    records = [FrameRecord(s, {"server": "TRACKING", "local": "LOCAL"}.get(src, "LOST")) for s, src, *_ in rows]
+    idx = getattr(getattr(fallback, "loc", None), "idx", None)
+    return drawn("the stream", plot_localization_topdown, traj, records, picture_path(out),
+                 landmarks=getattr(idx, "pos", None), gt=getattr(seq, "groundtruth", None),
+                 title=f"streamed (top view): {len(traj)}/{len(rows)} frames with a pose")

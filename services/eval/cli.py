@@ -59,20 +59,24 @@ def _table(results) -> None:
     console.print(t)
 
 
-def _uncertainty(args, gt, est, results) -> dict | None:
-    """services.eval.ape.uncertainty_check against the frame log (--frame-log, else EST.frames.csv when it exists);
-    None without one. Prints a line."""
+def _frame_log(args) -> tuple[str, dict] | None:
+    """(path, stamp -> FrameRecord) of the frame log (--frame-log, else EST.frames.csv when it exists), or None."""
     from services.cli import CliError
-    from services.eval.ape import compute_ape, uncertainty_check
     from services.io.frame_log import FrameLogError, frame_log_path, read_frame_log
 
     path = args.frame_log or frame_log_path(args.est)
     if args.frame_log is None and not path.is_file():
         return None
     try:
-        records = read_frame_log(path)
+        return str(path), read_frame_log(path)
     except FrameLogError as e:
         raise CliError(str(e)) from None
+
+
+def _uncertainty(args, gt, est, results, path: str, records: dict) -> dict:
+    """services.eval.ape.uncertainty_check against the frame log ``records`` (read from ``path``). Prints a line."""
+    from services.eval.ape import compute_ape, uncertainty_check
+
     none = results.get("none") or compute_ape(gt, est, "none", strict=not args.lenient)
     c = uncertainty_check(none, records)
     if c["n"]:
@@ -82,24 +86,6 @@ def _uncertainty(args, gt, est, results) -> dict | None:
     else:
         print(f"predicted uncertainty ({path}): no pose with a 1-sigma")
     return c
-
-
-def _records(args, gt, est) -> list | None:
-    """The ground truth's frames with their status from the frame log (relocalizations marked in the picture), or
-    None without a readable one."""
-    from pathlib import Path
-
-    from services.io.frame_log import FrameLogError, FrameRecord, frame_log_path, read_frame_log
-
-    path = Path(args.frame_log or frame_log_path(args.est))
-    try:
-        log_ = read_frame_log(path) if path.is_file() else None
-    except FrameLogError:
-        return None  # (_uncertainty has said why)
-    if log_ is None:
-        return None
-    poses = est.as_dict()
-    return [log_.get(s) or FrameRecord(s, "TRACKING" if s in poses else "LOST") for s in gt.stamps]
 
 
 def run(args) -> int:
@@ -133,7 +119,8 @@ def run(args) -> int:
         if name == "sim3":
             summary["ape_sim3_scale"] = r.scale
 
-    check = _uncertainty(args, gt, est, results)
+    frame_log = _frame_log(args)
+    check = None if frame_log is None else _uncertainty(args, gt, est, results, *frame_log)
     if check is not None:
         summary.update({f"uncertainty_{k}": check[k] for k in ("n", "beyond_3sigma", "t_ratio_median", "r_ratio_median")})
     if args.plots:
@@ -145,7 +132,7 @@ def run(args) -> int:
 
             scan = load_scan(args.scan, require_color=False)  # grey points are fine for a plot
         out = Path(args.plots)
-        files = [plot_trajectory_topdown(gt, est, out / "trajectory.png", scan=scan, records=_records(args, gt, est),
+        files = [plot_trajectory_topdown(gt, est, out / "trajectory.png", scan=scan, frame_log=frame_log and frame_log[1],
                                          title=f"{Path(args.est).name} vs {Path(args.gt).name} (top view)")]
         files += [plot_errors(r, out / f"errors_{name}.png") for name, r in results.items()]
         if check is not None and check["n"]:

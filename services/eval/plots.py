@@ -24,7 +24,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from services.io.scan import Scan
 
 __all__ = ["plot_trajectory_topdown", "plot_localization_topdown", "plot_positions_topdown", "plot_errors",
-           "plot_uncertainty", "picture_path"]
+           "plot_uncertainty", "picture_path", "drawn"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,16 @@ def picture_path(path: str | Path) -> Path:
     """``run/traj.txt`` -> ``run/traj.png``; ``site/reloc.npz`` -> ``site/reloc.png``."""
     p = Path(path)
     return p.with_name(p.stem + ".png")
+
+
+def drawn(what: str, plot, *args, **kw) -> Path | None:
+    """``plot(*args, **kw)``'s picture, or None with a warning naming ``what``: a picture never costs the run it shows
+    (matplotlib missing on a device, a full disk), so the callers draw after writing their outputs."""
+    try:
+        return plot(*args, **kw)
+    except Exception as e:  # noqa: BLE001
+        log.warning("no picture of %s: %s", what, e)
+        return None
 
 
 def _figure(w: float, h: float):
@@ -101,15 +111,14 @@ def _background(ax, lo: np.ndarray, hi: np.ndarray, z_max: float, scan: "Scan | 
 
 def plot_trajectory_topdown(gt: Trajectory, est: Trajectory, out_png: str | Path, scan: "Scan | None" = None,
                             title: str = "ground truth vs estimate (top view)", max_points: int = 200_000,
-                            records: list | None = None) -> Path:
+                            frame_log: dict | None = None) -> Path:
     """Ground truth and estimate from above, over the scan if given: :func:`plot_localization_topdown` over the
-    ground truth's frames. ``records`` (the run's frame log, when there is one) gives each frame's status; without
-    it a frame of the ground truth is TRACKING where the estimate has a pose and LOST where not."""
-    if records is None:
-        from services.io.frame_log import FrameRecord
+    ground truth's frames. A frame's status comes from ``frame_log`` (stamp -> FrameRecord, the run's
+    TRAJ.frames.csv) where it has the frame, else TRACKING where the estimate has a pose and LOST where not."""
+    from services.io.frame_log import FrameRecord
 
-        poses = est.as_dict()
-        records = [FrameRecord(s, "TRACKING" if s in poses else "LOST") for s in gt.stamps]
+    poses, frame_log = est.as_dict(), frame_log or {}
+    records = [frame_log.get(s) or FrameRecord(s, "TRACKING" if s in poses else "LOST") for s in gt.stamps]
     return plot_localization_topdown(est, records, out_png, scan=scan, gt=gt, title=title, max_points=max_points)
 
 

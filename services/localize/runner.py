@@ -132,7 +132,10 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
         n = sum(counts.values())
     write_tum(args.out, traj, header=f"cristal localize --method {method}: camera-to-world in the scan frame")
     write_frame_log(frame_log_path(args.out), records)  # every frame: status, inliers, predicted 1-sigma, reason
-    picture = _picture(traj, records, seq, args.out, background or {})
+    from services.eval.plots import drawn, picture_path, plot_localization_topdown
+
+    picture = drawn("the run", plot_localization_topdown, traj, records, picture_path(args.out), gt=seq.groundtruth,
+                    **(background or {}))  # TRAJ.png, after the outputs: a picture never costs the poses
     print(f"{len(traj)}/{n} frames localized ({counts[Status.RELOCALIZED]} relocalizations, {n - len(traj)} lost), "
           f"{n / dt:.1f} FPS; mean ms per frame: " + ", ".join(f"{k[:-3]} {v:.1f}" for k, v in stage.items()))
     if picture is not None:
@@ -168,14 +171,3 @@ def localize_and_report(loc, seq, args, method: str, stamped: bool = False, afte
     emit_summary(summary)
     return 130 if interrupted else 0 if len(traj) else 1  # (130: ended by Ctrl-C, as a shell reports it)
 
-
-def _picture(traj, records: list, seq, out, background: dict):
-    """TRAJ.png beside TRAJ.txt (services.eval.plots.plot_localization_topdown), or None: a picture never costs the
-    poses, so a failure to draw is logged and the run goes on."""
-    try:
-        from services.eval.plots import picture_path, plot_localization_topdown
-
-        return plot_localization_topdown(traj, records, picture_path(out), gt=seq.groundtruth, **background)
-    except Exception as e:  # noqa: BLE001 (matplotlib missing on a device, a full disk: the trajectory is written)
-        log.warning("no top-view picture of the run: %s", e)
-        return None

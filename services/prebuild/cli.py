@@ -101,7 +101,7 @@ def run_prebuild(args) -> int:
         scan = random_decimate(scan, args.decimate)
     pos = sample_positions(scan, RoiConfig(spacing=args.spacing, heights=tuple(args.heights), margin=args.margin,
                                            box=tuple(args.roi) if args.roi else None,
-                                           polygon=roi_polygon(args.roi_polygon) if getattr(args, "roi_polygon", None) else None))
+                                           polygon=roi_polygon(args.roi_polygon) if args.roi_polygon else None))
     if len(pos) == 0:
         raise CliError("no position in free space inside the region of interest: check --roi, --heights, --margin")
     renderer = Renderer(scan, device=args.device, holefill=args.stage == "full")
