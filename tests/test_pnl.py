@@ -948,3 +948,28 @@ def test_a_sequence_without_camera_json_is_localized_with_camera(pnl_site, pnl_m
              "--camera", tmp_path / "camera.json")
     assert r.returncode == 0, r.stdout + r.stderr
     assert json.loads(r.stdout.strip().splitlines()[-1])["localized"] >= 7
+
+
+def test_the_scans_own_error_widens_the_reported_sigma_and_nothing_else(pnl_site, pnl_map):
+    """As Render & Match's (test_render_match): the light localizer counts ``--scan-sigma-mm`` in each reported
+    1-sigma, at the depth of its map's keyframe nearest the pose, and reports the same poses."""
+    from services.localize.pnl import PnlConfig, PnlLocalizer
+    from services.localize.scan_error import scan_floor
+
+    cam, frames, truth, _ = _six_frames(pnl_site)
+
+    def run(cfg):
+        loc = PnlLocalizer.load(pnl_map[0], cfg)
+        return [loc.process(f.image, cam, stamp=float(f.stamp)) for f in frames]
+
+    own, widened = run(PnlConfig()), run(PnlConfig(scan_sigma_m=0.008))
+    assert sum(r.T_wc is not None for r in own) >= 4
+    for a, b, T in zip(own, widened, truth, strict=True):
+        assert a.status == b.status and (a.T_wc is None) == (b.T_wc is None)
+        if a.T_wc is None:
+            continue
+        assert np.allclose(a.T_wc.matrix(), b.T_wc.matrix(), atol=1e-9)
+        assert np.sqrt(b.sigma_m ** 2 - a.sigma_m ** 2) == pytest.approx(0.008, rel=1e-6)
+        floor_deg = np.sqrt(b.sigma_deg ** 2 - a.sigma_deg ** 2)
+        # a room a few metres across: seen from 1-5 m
+        assert scan_floor(0.008, 5.0)[1] < floor_deg < scan_floor(0.008, 1.0)[1], floor_deg

@@ -1545,3 +1545,31 @@ def test_a_lost_stretch_verifies_a_place_again_on_the_render_it_made_for_the_fra
     dt, dr = seq.groundtruth.poses[8].distance_to(again.T_wc)
     assert dt < 0.05 and dr < 1.0, (dt, dr)
     assert not tr.verify_kfs  # a reported pose: the kept renders are let go
+
+
+def test_the_scans_own_error_widens_the_reported_sigma_and_nothing_else(rm_setup):
+    """``--scan-sigma-mm``: a scan whose stations disagree by 8 mm places no camera better than that; each reported
+    1-sigma counts it (services/localize/scan_error.py) while the poses, and which frames are reported, stay the same:
+    the gates judge the frame's own uncertainty."""
+    from services.localize.scan_error import scan_floor
+
+    renderer, ext, db, seq, _ = rm_setup
+    frames = [seq.read(i) for i in range(5)]
+
+    def run(cfg):
+        tr = RenderMatchTracker(renderer, ext, db, cfg)
+        return [tr.process(f.image, seq.camera, stamp=float(f.stamp)) for f in frames]
+
+    own, widened = run(RMConfig()), run(RMConfig(scan_sigma_m=0.008))
+    assert sum(r.T_wc is not None for r in own) >= 4
+    for i, (a, b) in enumerate(zip(own, widened, strict=True)):
+        assert a.status == b.status and (a.T_wc is None) == (b.T_wc is None)
+        if a.T_wc is None:
+            continue
+        assert np.allclose(a.T_wc.matrix(), b.T_wc.matrix(), atol=1e-9)
+        floor_m, floor_deg = np.sqrt(b.sigma_m ** 2 - a.sigma_m ** 2), np.sqrt(b.sigma_deg ** 2 - a.sigma_deg ** 2)
+        # the floor at the distance the camera truly sees (the true pose's render): its keyframe's depth is near it
+        true = renderer.render(seq.groundtruth.poses[i], seq.camera, stage="filter").depth
+        at_truth = scan_floor(0.008, float(np.median(true[true > 0])))
+        assert floor_m == pytest.approx(0.008, rel=1e-6)
+        assert 0.67 * at_truth[1] < floor_deg < 1.5 * at_truth[1], (floor_deg, at_truth)

@@ -20,6 +20,7 @@ With --map DIR: a DIR holding map.msg is used as is; otherwise the bundle is dow
 
 def register(sub) -> None:
     from services.cli import add_odometry_args
+    from services.localize.cli import scan_sigma_arg
 
     p = sub.add_parser("stream", help="stream a sequence / video / camera to the server (with local P&L fallback)",
                        description="Localize a sequence through the cristal service over Zenoh.", epilog=EPILOG,
@@ -27,6 +28,9 @@ def register(sub) -> None:
     p.add_argument("sequence", help="sequence folder, video file, or an OpenCV camera index (needs --camera)")
     p.add_argument("--out", required=True, help="output TUM trajectory")
     p.add_argument("--map", dest="map_dir", metavar="MAPDIR", help="P&L map for the local fallback (path, or where to download it)")
+    p.add_argument("--scan-sigma-mm", type=scan_sigma_arg, default=0.0, metavar="MM",
+                   help="the scan's registration error (1-sigma, mm), counted in the local fallback's reported 1-sigma "
+                        "as the server's --scan-sigma-mm counts it in its own (default 0)")
     p.add_argument("--camera", help="camera.json (for a live camera or a video without one)")
     p.add_argument("--client-id", help="this device's id (default: random)")
     p.add_argument("--site", default="default", help="site id the server serves (key scope, default 'default')")
@@ -91,6 +95,7 @@ def run_stream(args) -> int:
     from services.client.fallback import load_local
     from services.client.stream import sources_path, stream_sequence
     from services.geometry.camera import Camera
+    from services.localize.cli import scan_sigma_m
     from services.io.sequence import open_sequence
     from services.zconfig import make_config
 
@@ -120,7 +125,7 @@ def run_stream(args) -> int:
             if not (d / "map.msg").is_file():
                 d = client.download_bundle(d)
                 print(f"P&L map bundle downloaded to {d}", flush=True)
-            fallback = load_local(d)
+            fallback = load_local(d, scan_sigma_m(args))
         traj, st = stream_sequence(seq, client, fallback, args.out, frames=args.frames, fps=args.fps, odometry=odometry,
                                    readout_s=args.rolling_shutter / 1000.0 or None,
                                    near=near)

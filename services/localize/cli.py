@@ -49,6 +49,11 @@ def add_gate_arguments(p: argparse.ArgumentParser) -> None:
                         "up for cameras coarser than VGA); larger: more frames, less accurate")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="the same for the camera centre, in centimetres (default 1)")
+    p.add_argument("--scan-sigma-mm", type=scan_sigma_arg, default=0.0, metavar="MM",
+                   help="the scan's registration error, 1-sigma in millimetres (the registration report's cloud-to-cloud "
+                        "or bundle error; default 0: a perfect scan). No camera is placed better than the scan: each "
+                        "reported 1-sigma then counts it (a camera between stations that disagree by MM turns by about "
+                        "MM / the distance to what it sees), so a pose beyond 3 sigma means what it says. Not a gate")
     p.add_argument("--min-agreement", type=float, default=0.6, metavar="A",
                    help="(rm) a relocalization far from the last pose, or cold, needs its render to agree with the frame "
                         "this well (gradient correlation, -1..1; default 0.6; true places score 0.74-0.92 in the simulator's "
@@ -59,7 +64,25 @@ def add_gate_arguments(p: argparse.ArgumentParser) -> None:
 def rm_gates(args) -> dict:
     """RMConfig's fields for the gates of :func:`add_gate_arguments`."""
     return dict(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
-                reloc_min_agreement=args.min_agreement)
+                reloc_min_agreement=args.min_agreement, scan_sigma_m=scan_sigma_m(args))
+
+
+def scan_sigma_arg(text: str) -> float:
+    """argparse type of ``--scan-sigma-mm``: millimetres, 0 to 1000."""
+    import math
+
+    try:
+        mm = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(mm) and 0.0 <= mm <= 1000.0):
+        raise argparse.ArgumentTypeError(f"must be between 0 and 1000 millimetres, got {text}")
+    return mm
+
+
+def scan_sigma_m(args) -> float:
+    """``--scan-sigma-mm`` in metres (0 when the command has no such flag)."""
+    return float(getattr(args, "scan_sigma_mm", 0.0) or 0.0) / 1000.0
 
 
 def register(sub) -> None:

@@ -75,6 +75,7 @@ from services.localize.carry import OdometryCarry
 from services.localize.innovation import within_motion
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
 from services.localize.odometry_check import OdometryCheck
+from services.localize.scan_error import with_scan_error
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
 from services.relocalize.ambiguity import FAR_M
@@ -96,6 +97,7 @@ class RMConfig:
     max_sigma_m: float = 0.01  # gate: predicted 1-sigma camera-centre uncertainty from the inlier geometry ...
     max_sigma_deg: float = 0.1  # ... and orientation: a pose less certain than the accuracy we promise is LOST ...
     sigma_ref_px_deg: float = 0.12  # ... for cameras whose pixels subtend up to this (VGA, 65 deg wide); coarser ones scale both
+    scan_sigma_m: float = 0.0  # the scan's registration error (1-sigma), counted in the reported 1-sigma (scan_error.py)
     ransac_px: float = 2.0  # RANSAC inlier threshold
     match_cos: float = 0.82  # mutual-NN cosine threshold (XFeat's default)
     rerender_m: float = 0.15  # re-render when the pose is this far from the keyframe ...
@@ -258,6 +260,7 @@ class Keyframe:
     direct: tuple | None = None  # (LandmarkPatches, world points, render pixels): corner patches, for direct tracking
     direct_blurred: LandmarkPatches | None = None  # the same corners' patches cut from the blurred render
     scene_points: np.ndarray | None = None  # world points of the render's measured depth (RenderMatchTracker._scene_depth)
+    depth_m: float | None = None  # median measured depth of the render (the scan's error in the reported 1-sigma)
 
 
 @dataclass
@@ -1456,5 +1459,16 @@ class RenderMatchTracker:
         if not good:
             reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg 1-sigma)"
                       if not self._good(r) else NOT_UNDONE if not rs_settled else "pose away from where the motion leads")
+        sigma_m, sigma_deg = with_scan_error(r.sigma_t_m, r.sigma_r_deg, self.cfg.scan_sigma_m, self._view_depth())
         return FrameResult(status if good else Status.LOST, r.T_wc if good else None, r.n_inliers, r.reproj_rmse_px,
-                           rerendered, fr.tm, r.sigma_t_m, r.sigma_r_deg, self._blur_px(fr, self._exposure(fr)), reason)
+                           rerendered, fr.tm, sigma_m, sigma_deg, self._blur_px(fr, self._exposure(fr)), reason)
+
+    def _view_depth(self) -> float:
+        """The median measured depth of the keyframe the last pose was found against (NaN without one)."""
+        kf = self.kf
+        if kf is None or not self.cfg.scan_sigma_m:
+            return float("nan")
+        if kf.depth_m is None:
+            d = kf.render.depth[kf.render.depth > 0]
+            kf.depth_m = float(np.median(d)) if d.size else float("nan")
+        return kf.depth_m
