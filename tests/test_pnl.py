@@ -969,7 +969,7 @@ def test_the_scans_own_error_widens_the_reported_sigma_and_nothing_else(pnl_site
         if a.T_wc is None:
             continue
         assert np.allclose(a.T_wc.matrix(), b.T_wc.matrix(), atol=1e-9)
-        assert np.sqrt(b.sigma_m ** 2 - a.sigma_m ** 2) == pytest.approx(0.008, rel=1e-6)
+        assert np.sqrt(b.sigma_m ** 2 - a.sigma_m ** 2) == pytest.approx(0.016, rel=1e-6)
         floor_deg = np.sqrt(b.sigma_deg ** 2 - a.sigma_deg ** 2)
         # a room a few metres across: seen from 1-5 m
         assert scan_floor(0.008, 5.0)[1] < floor_deg < scan_floor(0.008, 1.0)[1], floor_deg

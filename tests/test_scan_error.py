@@ -12,12 +12,12 @@ def test_a_perfect_scan_adds_nothing_and_a_flawed_one_adds_more_the_closer_the_c
     assert scan_floor(0.0, 2.0) == (0.0, 0.0)
     assert with_scan_error(0.003, 0.04, 0.0, 2.0) == (0.003, 0.04)
     m, deg = scan_floor(0.008, 2.0)
-    assert m == pytest.approx(0.008) and deg == pytest.approx(math.degrees(0.004))
+    assert m == pytest.approx(0.016) and deg == pytest.approx(math.degrees(0.004))
     assert scan_floor(0.008, 1.0)[1] == pytest.approx(2 * deg)  # a close-up turns twice as far
     assert scan_floor(0.008, 0.01) == scan_floor(0.008, 0.3)  # no infinite turn at a lens cap
     assert scan_floor(0.008, float("nan")) == scan_floor(0.008, 3.0)  # nothing seen: a room's depth
     sm, sd = with_scan_error(0.006, 0.05, 0.008, 2.0)
-    assert sm == pytest.approx(0.010) and sd == pytest.approx(math.hypot(0.05, deg))  # in quadrature
+    assert sm == pytest.approx(math.hypot(0.006, 0.016)) and sd == pytest.approx(math.hypot(0.05, deg))  # in quadrature
 
 
 def test_median_depth_counts_what_lies_in_front():

@@ -139,6 +139,7 @@ def test_e57_two_scans_land_in_the_world_frame(tmp_path):
     assert len(s.stations) == 2
     assert s.stations[0].distance_to(Ta)[0] < 1e-9 and s.stations[1].distance_to(Tb)[1] < 1e-6
     assert s.meta["format"] == "e57" and s.meta["e57_scans"] == 2
+    assert s.meta["station_points"] == [300, len(XYZ) - 300]  # which points each station has (scan check)
 
 
 def test_e57_without_colour(tmp_path):
@@ -205,6 +206,7 @@ def test_e57_spherical_16_bit_colour_and_invalid_points(tmp_path):
     np.testing.assert_allclose(s.world_xyz(), Pose.from_quat_t([0, 0, q[3], q[0]], t).transform(local), atol=1e-5)
     np.testing.assert_array_equal(s.rgb, RGB[keep])
     assert s.meta["dropped_invalid"] == 3 and len(s) == N - 3
+    assert s.meta["station_points"] == [N - 3]  # counted after the invalid points went
 
 
 def test_e57_scaled_integer_coordinates(tmp_path):

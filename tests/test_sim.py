@@ -113,6 +113,11 @@ def test_a_scan_with_a_real_registrations_flaws_has_them(tmp_path):
     generate_site(perfect, tmp_path / "a")
     generate_site(flawed, tmp_path / "b")
     a, b = load_scan(tmp_path / "a" / "scan.ply"), load_scan(tmp_path / "b" / "scan.ply")
+    from services.io.registration import station_agreement
+
+    # each station's points are known (scan check): the perfect stations agree, the flawed ones by centimetres
+    perfect_mm, flawed_mm = (1e3 * station_agreement(s).registration_m for s in (a, b))
+    assert perfect_mm < 2.0 and flawed_mm > 2 * perfect_mm + 3.0, (perfect_mm, flawed_mm)
     for sa, sb in zip(a.stations, b.stations, strict=True):
         dt, dr = sa.distance_to(sb)
         assert 1e-4 < dt < 0.06 and 1e-4 < dr < 0.2, (dt, dr)  # 1 cm / 0.03 deg 1-sigma per axis

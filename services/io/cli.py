@@ -1,4 +1,5 @@
-"""``cristal scan info`` (what is in a scan file) and ``cristal scan convert`` (to PLY, optionally thinned)."""
+"""``cristal scan info`` (what is in a scan file), ``cristal scan check`` (how well its stations agree) and
+``cristal scan convert`` (to PLY, optionally thinned)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ examples:
   cristal scan convert big.laz small.ply --voxel 0.02    one point per 2 cm voxel (colour = voxel mean)
   cristal scan convert big.ply half.ply --fraction 0.5   a random half (same --seed, same half)
   cristal scan convert raw.e57 scan.ply --drop-floating  without the points that lie on no surface (mixed pixels)
+  cristal scan check survey.e57                    how well the stations agree: the registration error, in mm
 
 formats: .ply (binary or ASCII; uchar, ushort or float colours), .e57 (every scan, moved by its pose
 into the file's world frame), .las/.laz (16-bit colours scaled to 8 bit). Points with NaN/inf
@@ -26,6 +28,24 @@ example:
   cristal scan info survey.e57 --no-cache --allow-no-color
 
 The last stdout line is a JSON summary (points, bounds_min/max, origin, stations, from_cache, ...).
+"""
+
+CHECK_EPILOG = """\
+examples:
+  cristal scan check survey.e57
+  cristal scan check site/scan.ply --sample 50000
+
+Where two stations saw the same surface their points should lie on it together. For a sample of each station's
+points on flat surfaces this measures the distance to the other station's local plane and to its own (the range
+noise, which the first holds too): the registration's share is what is left. The result is what a registration
+report's cloud-to-cloud error says, and the number 'cristal localize / serve / stream --scan-sigma-mm' takes: no
+camera is placed better than its scan, and each pose's reported 1-sigma then says so ('auto' measures it there).
+A camera between stations that disagree by s errs up to about 2 s at its centre and s / d in orientation (d: the
+distance to what it sees): 8 mm at 2 m is 1.6 cm / 0.23 deg, beyond the 1 cm / 0.1 deg a perfect scan allows.
+
+Needs to know which points each station has: E57 files (one scan per station), simulated scans and PLY files
+written by cristal ('cristal scan convert survey.e57 scan.ply' keeps it). A merged PLY from elsewhere cannot tell.
+The last stdout line is a JSON summary (registration_mm, noise_mm, pairs).
 """
 
 CONVERT_EPILOG = """\
@@ -61,6 +81,14 @@ def register(sub) -> None:
     i.add_argument("--allow-no-color", action="store_true", help="accept a scan without colours (grey points)")
     i.set_defaults(func=run_info)
 
+    k = ss.add_parser("check", help="how well the scan's stations agree: its registration error (mm)",
+                      description="Measure how well a scan's stations agree (its registration error).",
+                      epilog=CHECK_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    k.add_argument("scan", metavar="SCAN", help="scan file (.ply, .e57, .las, .laz) that knows its stations' points")
+    k.add_argument("--sample", type=int, default=20_000, metavar="N", help="points sampled per station (default 20000)")
+    k.add_argument("--allow-no-color", action="store_true", help="accept a scan without colours (grey points)")
+    k.set_defaults(func=run_check)
+
     c = ss.add_parser("convert", help="convert to PLY, optionally voxel- or randomly thinned",
                       description="Convert a scan to PLY (world frame, uchar colours).", epilog=CONVERT_EPILOG,
                       formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -81,7 +109,7 @@ def register(sub) -> None:
 def run_info(args) -> int:
     from services.cli import emit_summary
     from services.io.scan import level_warning
-    from services.io.scans import load_scan, scan_info
+    from services.io.scans import load_scan, scan_info, station_points
 
     scan = load_scan(args.scan, cache=not args.no_cache, require_color=not args.allow_no_color)
     s = scan_info(scan)
@@ -94,14 +122,53 @@ def run_info(args) -> int:
           + (" (coordinates stored relative to it)" if any(s["origin"]) else ""))
     print(f"  colour: {'yes' if s['has_color'] else 'no (grey)'}")
     why = level_warning(scan)
-    print(f"  stations: {len(s['stations'])}" + (", upright (z up)" if scan.stations and not why else ""))
+    known = station_points(scan) is not None
+    print(f"  stations: {len(s['stations'])}" + (", upright (z up)" if scan.stations and not why else "")
+          + (", each one's points known ('cristal scan check' measures how well they agree)" if known else ""))
     if why:
         print(f"  WARNING: {why}")
     for k, st in enumerate(s["stations"]):
         print(f"    {k}: t = {st[0]:.3f} {st[1]:.3f} {st[2]:.3f}, q_xyzw = {st[3]:.4f} {st[4]:.4f} {st[5]:.4f} {st[6]:.4f}")
     print(f"  dropped: {s['dropped_nonfinite']} non-finite, {s['dropped_invalid']} flagged invalid")
     s["upright"] = (why is None) if scan.stations else None  # None: no stations to tell
+    s["station_points_known"] = known
     emit_summary(s)
+    return 0
+
+
+def run_check(args) -> int:
+    from services.cli import CliError, emit_summary
+    from services.io.registration import station_agreement
+    from services.io.scans import load_scan
+
+    if args.sample < 100:
+        raise CliError(f"--sample must be at least 100 points per station, got {args.sample}")
+    scan = load_scan(args.scan, require_color=not args.allow_no_color)
+    a = station_agreement(scan, sample=args.sample)
+    summary = {"scan": str(args.scan), "stations": len(scan.stations), "registration_mm": None, "noise_mm": None,
+               "pairs": []}
+    if a is None:
+        why = ("it has one station" if len(scan.stations) == 1 else
+               "it does not say which points each station has (a merged PLY from elsewhere; E57 files, simulated "
+               "scans and PLY written by 'cristal scan convert' do)")
+        print(f"{args.scan}: cannot tell how well its stations agree: {why}")
+    elif not a.pairs:
+        print(f"{args.scan}: {a.stations} stations, but no two share enough of a flat surface to compare")
+    else:
+        mm = 1e3 * a.registration_m
+        summary.update(registration_mm=round(mm, 2), noise_mm=round(1e3 * a.noise_m, 2), pairs=[
+            {"a": p.a, "b": p.b, "shared": p.n, "between_mm": round(1e3 * p.between_m, 2),
+             "registration_mm": round(1e3 * p.registration_m, 2)} for p in a.pairs])
+        print(f"{args.scan}: {a.stations} stations, {len(a.pairs)} pairs sharing flat surfaces; range noise "
+              f"{1e3 * a.noise_m:.1f} mm")
+        print(f"  registration error (the stations' disagreement beyond the noise): {mm:.1f} mm")
+        print("  station  against  shared points  distance mm  registration mm")
+        for p in sorted(a.pairs, key=lambda p: -p.registration_m):
+            print(f"  {p.a:7d}  {p.b:7d}  {p.n:13,d}  {1e3 * p.between_m:11.1f}  {1e3 * p.registration_m:15.1f}")
+        print(f"  a camera placed in it errs up to {mm / 5:.1f} cm and {mm / 2000 * 57.2958:.2f} deg seen at 2 m: pass "
+              f"--scan-sigma-mm {mm:.1f} (or auto) to 'cristal localize' / 'serve' / 'stream' so its reported 1-sigma "
+              "says so" + ("; over 1 cm: check the registration" if mm > 10 else ""))
+    emit_summary(summary)
     return 0
 
 

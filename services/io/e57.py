@@ -42,14 +42,17 @@ def read_e57(path: Path) -> Scan:
             log.warning("%s: %d of %d E57 scans have no colour; their points are grey", path,
                         has_colour.count(False), len(headers))
         sink = PointSink(sum(h.point_count for h in headers))
-        stations, invalid = [], 0
+        stations, invalid, counts = [], 0, []
         for i, h in enumerate(headers):
             pose = _pose(h) if h.has_pose() else Pose.identity()
             stations.append(pose)
+            before = sink.n
             invalid += _read_one(e57, libe57, h, pose, sink, f"{path.name} scan {i + 1}/{len(headers)}", has_colour[i])
+            counts.append(sink.n - before)
     if invalid:
         log.info("%s: dropped %d points the scanner flagged invalid", path, invalid)
-    return sink.scan(path, "e57", stations, has_color=any(has_colour), dropped_invalid=invalid, e57_scans=len(headers))
+    return sink.scan(path, "e57", stations, has_color=any(has_colour), dropped_invalid=invalid, e57_scans=len(headers),
+                     station_points=counts)
 
 
 def _pose(h) -> Pose:

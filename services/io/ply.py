@@ -8,6 +8,7 @@ float64 copies.
 
 from __future__ import annotations
 
+import logging
 import mmap
 from pathlib import Path
 
@@ -15,10 +16,12 @@ import numpy as np
 
 from services.geometry.se3 import Pose
 from services.io.scan import Scan, ScanError
-from services.io.scans import CHUNK, STATION_TAG, PointSink
+from services.io.scans import CHUNK, STATION_POINTS_TAG, STATION_TAG, PointSink
 from services.log import progress
 
 __all__ = ["read_ply", "to_uint8"]
+
+log = logging.getLogger(__name__)
 
 COLOUR_NAMES = [("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"), ("r", "g", "b")]
 
@@ -50,7 +53,23 @@ def read_ply(path: Path) -> Scan:
         rgb = None if colour is None else np.stack([to_uint8(rows[c], float_scale) for c in colour], axis=1)
         sink.add(xyz, rgb)
         _release(data)
-    return sink.scan(path, "ply", stations, has_color=colour is not None)
+    counts = _station_points(path, ply.comments)
+    if counts is not None and (sink.dropped or sum(counts) != n):
+        log.info("%s: station point counts dropped (%d points in the file, %d dropped as non-finite)", path,
+                 n, sink.dropped)
+        counts = None
+    extra = {} if counts is None else {"station_points": counts}
+    return sink.scan(path, "ply", stations, has_color=colour is not None, **extra)
+
+
+def _station_points(path: Path, comments: list[str]) -> list[int] | None:
+    for c in comments:
+        if c.split()[:1] == [STATION_POINTS_TAG]:
+            try:
+                return [int(x) for x in c.split()[1:]]
+            except ValueError:
+                log.warning("%s: ignoring a bad '%s' comment", path, STATION_POINTS_TAG)
+    return None
 
 
 def to_uint8(v: np.ndarray, float_scale: list[float]) -> np.ndarray:

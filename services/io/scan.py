@@ -56,8 +56,25 @@ class Scan:
     def subset(self, index: np.ndarray) -> "Scan":
         """The points at ``index``; its meta no longer names the file's cache (a decimated scan kept its render order
         there, over the full scan's, which the next full load then recomputed)."""
-        meta = {k: v for k, v in self.meta.items() if k not in ("cache_dir", "from_cache")}
+        meta = {k: v for k, v in self.meta.items() if k not in ("cache_dir", "from_cache", "station_points")}
+        counts = _subset_counts(self.meta.get("station_points"), index, len(self))
+        if counts is not None:
+            meta["station_points"] = counts
         return Scan(self.xyz[index], self.rgb[index], self.origin.copy(), list(self.stations), self.source, meta)
+
+
+def _subset_counts(counts: list[int] | None, index, n: int) -> list[int] | None:
+    """Each station's points (``meta["station_points"]``) after ``Scan.subset(index)``: kept for a mask or increasing
+    indices (the order kept), None otherwise."""
+    if counts is None or sum(counts) != n:
+        return None
+    edges = np.concatenate([[0], np.cumsum(counts)])
+    index = np.asarray(index)
+    if index.dtype == bool and index.shape == (n,):
+        return [int(np.count_nonzero(index[a:b])) for a, b in zip(edges[:-1], edges[1:])]
+    if index.ndim == 1 and index.dtype.kind in "iu" and (len(index) < 2 or bool(np.all(index[1:] > index[:-1]))):
+        return np.diff(np.searchsorted(index, edges)).tolist()
+    return None
 
 
 def level_warning(scan: Scan, max_tilt_deg: float = 30.0) -> str | None:

@@ -19,17 +19,18 @@ import numpy as np
 
 from services.io.scan import Scan, ScanError
 
-__all__ = ["load_scan", "save_ply", "scan_info", "READER_VERSION", "SUFFIXES", "PointSink", "GREY"]
+__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY"]
 
 log = logging.getLogger(__name__)
 
 # Bump when a reader's output changes: cached results of older readers are then re-parsed.
-READER_VERSION = 1
+READER_VERSION = 2  # 2: station_points (each station's points, in file order) in meta
 SUFFIXES = {".ply": "ply", ".e57": "e57", ".las": "las", ".laz": "las"}
 CHUNK = 2_000_000  # points converted at a time: bounds the float64 temporaries to ~50 MB
 LARGE = 1e4  # coordinates beyond this (metres) get an origin, so float32 keeps millimetres
 GREY = 128  # colour given to every point of a colourless scan when require_color=False
 STATION_TAG = "cristal_station"  # PLY comment: "cristal_station tx ty tz qx qy qz qw" (scanner-to-world)
+STATION_POINTS_TAG = "cristal_station_points"  # comment: how many points each station has, in file order
 
 
 class PointSink:
@@ -136,7 +137,8 @@ def load_scan(path: str | Path, *, cache: bool = True, require_color: bool = Tru
 def save_ply(scan: Scan, path: str | Path, binary: bool = True) -> None:
     """Write ``scan`` as PLY, atomically: world x y z (double when the origin is non-zero, else float), uchar rgb.
 
-    Station poses go into ``comment cristal_station tx ty tz qx qy qz qw`` lines, which ``load_scan`` reads back.
+    Station poses go into ``comment cristal_station tx ty tz qx qy qz qw`` lines, which ``load_scan`` reads back, and
+    how many points each station has (their points one station after another) into ``comment cristal_station_points``.
     """
     from services.io.atomic import atomic_write
 
@@ -145,6 +147,9 @@ def save_ply(scan: Scan, path: str | Path, binary: bool = True) -> None:
     ftype, fdt = ("double", "f8") if wide else ("float", "f4")
     lines = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0", "comment written by cristal"]
     lines += [f"comment {STATION_TAG} " + " ".join(repr(float(v)) for v in s.to_tum()) for s in scan.stations]
+    counts = station_points(scan)
+    if counts is not None:
+        lines += [f"comment {STATION_POINTS_TAG} " + " ".join(str(c) for c in counts)]
     lines += [f"element vertex {len(scan)}"] + [f"property {ftype} {a}" for a in "xyz"]
     lines += [f"property uchar {c}" for c in ("red", "green", "blue")] + ["end_header", ""]
     dtype = np.dtype([(a, "<" + fdt) for a in "xyz"] + [(c, "u1") for c in ("red", "green", "blue")])
@@ -164,6 +169,15 @@ def save_ply(scan: Scan, path: str | Path, binary: bool = True) -> None:
                 fmt = "%.6f" if wide else "%.9g"
                 rows = np.column_stack([xyz.astype(np.float64), scan.rgb[sl]])
                 np.savetxt(f, rows, fmt=[fmt] * 3 + ["%d"] * 3)
+
+
+def station_points(scan: Scan) -> list[int] | None:
+    """How many points each of ``scan.stations`` has, their points one station after another (``meta``'s
+    ``station_points``: E57 scans, simulated scans, PLY written by cristal); None when unknown or inconsistent."""
+    counts = scan.meta.get("station_points")
+    if counts is None or len(counts) != len(scan.stations) or sum(counts) != len(scan) or min(counts, default=0) < 0:
+        return None
+    return [int(c) for c in counts]
 
 
 def scan_info(scan: Scan) -> dict:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+
+log = logging.getLogger(__name__)
 
 DB_EPILOG = """\
 examples:
@@ -51,7 +54,8 @@ def add_gate_arguments(p: argparse.ArgumentParser) -> None:
                    help="the same for the camera centre, in centimetres (default 1)")
     p.add_argument("--scan-sigma-mm", type=scan_sigma_arg, default=0.0, metavar="MM",
                    help="the scan's registration error, 1-sigma in millimetres (the registration report's cloud-to-cloud "
-                        "or bundle error; default 0: a perfect scan). No camera is placed better than the scan: each "
+                        "or bundle error, or 'auto': measured from the scan as 'cristal scan check' does; default 0: "
+                        "a perfect scan). No camera is placed better than the scan: each "
                         "reported 1-sigma then counts it (a camera between stations that disagree by MM turns by about "
                         "MM / the distance to what it sees), so a pose beyond 3 sigma means what it says. Not a gate")
     p.add_argument("--min-agreement", type=float, default=0.6, metavar="A",
@@ -67,10 +71,12 @@ def rm_gates(args) -> dict:
                 reloc_min_agreement=args.min_agreement, scan_sigma_m=scan_sigma_m(args))
 
 
-def scan_sigma_arg(text: str) -> float:
-    """argparse type of ``--scan-sigma-mm``: millimetres, 0 to 1000."""
+def scan_sigma_arg(text: str) -> float | str:
+    """argparse type of ``--scan-sigma-mm``: millimetres, 0 to 1000, or ``auto`` (measured from the scan)."""
     import math
 
+    if text == "auto":
+        return text
     try:
         mm = float(text)
     except ValueError:
@@ -81,8 +87,36 @@ def scan_sigma_arg(text: str) -> float:
 
 
 def scan_sigma_m(args) -> float:
-    """``--scan-sigma-mm`` in metres (0 when the command has no such flag)."""
-    return float(getattr(args, "scan_sigma_mm", 0.0) or 0.0) / 1000.0
+    """``--scan-sigma-mm`` in metres (0 when the command has no such flag); ``auto`` must have been resolved
+    (:func:`resolve_scan_sigma`) by a command that has the scan."""
+    from services.cli import CliError
+
+    mm = getattr(args, "scan_sigma_mm", 0.0) or 0.0
+    if mm == "auto":
+        raise CliError("--scan-sigma-mm auto measures the scan, which this command does not load: run 'cristal scan "
+                       "check SCAN' and pass the number it prints")
+    return float(mm) / 1000.0
+
+
+def resolve_scan_sigma(args, scan) -> None:
+    """``--scan-sigma-mm auto``: the registration error measured from ``scan`` itself
+    (:func:`services.io.registration.station_agreement`); 0 with a warning when the scan cannot tell (one station,
+    or a file that does not say which points each station has)."""
+    if getattr(args, "scan_sigma_mm", None) != "auto":
+        return
+    from services.io.registration import station_agreement
+
+    a = station_agreement(scan)
+    if a is None or not a.pairs:
+        log.warning("--scan-sigma-mm auto: the scan cannot tell its registration error (%s); taking 0",
+                    "no two stations share a surface" if a is not None else
+                    "it does not say which points each station has: E57 files, simulated scans and PLY written by "
+                    "'cristal scan convert' do")
+        args.scan_sigma_mm = 0.0
+        return
+    args.scan_sigma_mm = round(1e3 * a.registration_m, 2)
+    log.info("--scan-sigma-mm auto: the scan's stations disagree by %.1f mm (%d pairs; range noise %.1f mm)",
+             args.scan_sigma_mm, len(a.pairs), 1e3 * a.noise_m)
 
 
 def register(sub) -> None:
@@ -315,6 +349,7 @@ def run_localize(args) -> int:
     odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes) if args.odometry else None
     db = RelocDB.load(args.db)
     scan = load_scan(args.scan)
+    resolve_scan_sigma(args, scan)
     renderer = Renderer(scan, device=args.device)
     cfg = RMConfig(**rm_gates(args),
                    direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points,

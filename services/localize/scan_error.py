@@ -2,11 +2,14 @@
 
 A pose's predicted 1-sigma comes from its matches: how well the frame fixes the camera *against the scan*. A
 registered scan is itself off by a few millimetres where its stations meet (the registration report's cloud-to-cloud
-or bundle error). A camera that sees surfaces from stations that disagree by ``s`` is placed between them, whatever
-its own matches say: its centre about ``s`` off, and it turns by up to ``s / d`` (``d`` the median distance to what it
-sees) where the near surfaces come from one station and the far ones from another. Without that term, on such a scan
-the poses err beyond 3 x their 1-sigma (simulated office walk, stations 3 mm / 0.01 deg off per axis, 8 mm
-cloud-to-cloud: 77 of 279 poses, at 0.98 cm / 0.127 deg RMSE; ``s / 2d`` left 49 beyond, all in orientation).
+or bundle error; ``cristal scan check`` measures it). A camera that sees surfaces from stations that disagree by ``s``
+is placed between them, whatever its own matches say: it turns by up to ``s / d`` (``d`` the median distance to what it
+sees) where the near surfaces come from one station and the far ones from another, and its centre moves by ``s`` and
+by as much again, the turn traded for a shift at that depth: ``2 s``. Without that term the poses on such a scan err
+beyond 3 x their 1-sigma. Simulated office walks, stations registered 3 mm / 0.01 deg off per axis (benchmarks/RESULTS.md,
+stop 62): seed 1, 7.4 mm measured, R&M 77 of 279 poses beyond 3 sigma (0.98 cm / 0.127 deg RMSE), P&L 206 of 272;
+seed 8, 3.3 mm, R&M 131 of 246 (0.74 cm / 0.111 deg). With it: 0 to 4. (``s / 2d`` left 49 beyond on seed 1, all in
+orientation; a centre term of ``s`` left seed 8's centre errors a median 1.7 x their 1-sigma.)
 
 The term widens only what is reported (``sigma_m``/``sigma_deg`` on the wire and in ``TRAJ.frames.csv``); the report
 gates keep judging the frame's own uncertainty, since no frame can do better than the scan it is placed in.
@@ -27,7 +30,7 @@ def scan_floor(scan_sigma_m: float, depth_m: float) -> tuple[float, float]:
     if not scan_sigma_m > 0:
         return 0.0, 0.0
     d = max(float(depth_m), 0.3) if math.isfinite(depth_m) else 3.0
-    return scan_sigma_m, math.degrees(scan_sigma_m / d)
+    return 2.0 * scan_sigma_m, math.degrees(scan_sigma_m / d)
 
 
 def with_scan_error(sigma_m: float, sigma_deg: float, scan_sigma_m: float, depth_m: float) -> tuple[float, float]:

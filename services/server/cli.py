@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from services.localize.cli import add_gate_arguments, rm_gates
+from services.localize.cli import add_gate_arguments, resolve_scan_sigma, rm_gates
 
 ROUTER_EPILOG = """\
 examples:
@@ -124,6 +124,10 @@ def run_serve(args) -> int:
         import torch
 
         torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+        if args.scan_sigma_mm == "auto":  # measured from the scan (a cached scan loads again in milliseconds)
+            from services.io.scans import load_scan
+
+            resolve_scan_sigma(args, load_scan(args.scan))
     cfg = ServerConfig(site=args.site, map_id=args.map_id, server_id=args.server_id, workers=args.workers,
                        max_clients=args.max_clients, idle_s=args.idle, evict_silent_s=args.evict_after,
                        metrics_port=args.metrics_port, metrics_addr=args.metrics_addr)

@@ -95,7 +95,8 @@ def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
         rgb_parts.append(rgb)
         stations.append(Pose(R, centre))  # where the registration put the station
     world = np.concatenate(xyz_parts)
-    scan = Scan(world.astype(np.float32), np.concatenate(rgb_parts), np.zeros(3), stations)
+    scan = Scan(world.astype(np.float32), np.concatenate(rgb_parts), np.zeros(3), stations,
+                meta={"station_points": [len(x) for x in xyz_parts]})
     del world
     from services.io.scans import save_ply
 
