@@ -67,6 +67,13 @@ def test_prebuild_check_and_localize(pnl_site, pnl_map, tmp_path):
 
     patches = LandmarkPatches.load(mapdir / "patches.npz")  # the light localizer's landmark patches, beside the map
     assert len(patches.lm_ids) == summary["landmarks"] and patches.size == 23
+    # and what the scan's stations disagree by, for the light localizer's --scan-sigma-mm auto (the client's too)
+    from services.client.fallback import load_local
+
+    recorded = json.loads((mapdir / "scan_accuracy.json").read_text())["scan_sigma_mm"]
+    assert recorded == summary["scan_sigma_mm"] and 0.0 <= recorded < 2.0  # a perfect simulated scan
+    assert load_local(mapdir).loc.cfg.scan_sigma_m == pytest.approx(recorded / 1000.0)
+    assert load_local(mapdir, 0.005).loc.cfg.scan_sigma_m == 0.005
     problems, stats = check_map_dir(mapdir)
     assert problems == [] and stats["config"]
     m = read_map(mapdir)

@@ -141,6 +141,8 @@ def test_build_db_cli_writes_the_database_and_a_picture_of_its_positions(small_s
     db = RelocDB.load(db_path)
     assert s["positions"] == db.meta["positions"] >= 2 and db.n_views == 4 * s["positions"]
     assert s["picture"] == str(tmp_path / "db.png") and red_pixels(tmp_path / "db.png") > 8 * s["positions"] + 20
+    # the scan's own error, measured once here for --scan-sigma-mm auto (a perfect simulated scan: about a millimetre)
+    assert s["scan_sigma_mm"] == db.meta["scan_sigma_mm"] and 0.0 <= s["scan_sigma_mm"] < 2.0
 
 
 def test_reacquires_at_the_last_good_pose_after_lost_without_a_database(rm_setup):

@@ -28,9 +28,10 @@ def register(sub) -> None:
     p.add_argument("sequence", help="sequence folder, video file, or an OpenCV camera index (needs --camera)")
     p.add_argument("--out", required=True, help="output TUM trajectory")
     p.add_argument("--map", dest="map_dir", metavar="MAPDIR", help="P&L map for the local fallback (path, or where to download it)")
-    p.add_argument("--scan-sigma-mm", type=scan_sigma_arg, default=0.0, metavar="MM",
+    p.add_argument("--scan-sigma-mm", type=scan_sigma_arg, default="auto", metavar="MM",
                    help="the scan's registration error (1-sigma, mm), counted in the local fallback's reported 1-sigma "
-                        "as the server's --scan-sigma-mm counts it in its own (default 0)")
+                        "as the server's --scan-sigma-mm counts it in its own (default 'auto': what prebuild recorded "
+                        "beside the map)")
     p.add_argument("--camera", help="camera.json (for a live camera or a video without one)")
     p.add_argument("--client-id", help="this device's id (default: random)")
     p.add_argument("--site", default="default", help="site id the server serves (key scope, default 'default')")
@@ -125,7 +126,7 @@ def run_stream(args) -> int:
             if not (d / "map.msg").is_file():
                 d = client.download_bundle(d)
                 print(f"P&L map bundle downloaded to {d}", flush=True)
-            fallback = load_local(d, scan_sigma_m(args))
+            fallback = load_local(d, None if args.scan_sigma_mm == "auto" else scan_sigma_m(args))
         traj, st = stream_sequence(seq, client, fallback, args.out, frames=args.frames, fps=args.fps, odometry=odometry,
                                    readout_s=args.rolling_shutter / 1000.0 or None,
                                    near=near)

@@ -100,13 +100,17 @@ def _takes(fn, name: str) -> bool:
     return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
-def load_local(map_dir: str | Path, scan_sigma_m: float = 0.0) -> LocalFallback | None:
+def load_local(map_dir: str | Path, scan_sigma_m: float | None = None) -> LocalFallback | None:
     """The P&L localizer for ``map_dir`` behind :class:`LocalFallback`; None (with a warning) if unavailable.
     ``scan_sigma_m``: the scan's registration error, counted in each reported 1-sigma (as the server's
-    ``--scan-sigma-mm``)."""
+    ``--scan-sigma-mm``); None: what prebuild recorded beside the map (0 if nothing)."""
     try:
         from services.localize.pnl import PnlConfig, PnlLocalizer
     except ImportError as e:
         log.warning("the local P&L localizer is not available (%s): frames the server misses get no pose", e)
         return None
+    if scan_sigma_m is None:
+        from services.localize.scan_error import read_accuracy_mm
+
+        scan_sigma_m = (read_accuracy_mm(map_dir) or 0.0) / 1000.0
     return LocalFallback(PnlLocalizer.load(Path(map_dir), PnlConfig(scan_sigma_m=scan_sigma_m)))

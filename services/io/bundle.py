@@ -1,4 +1,5 @@
-"""The P&L map bundle: a map directory (``map.msg`` + ``config.yaml`` [+ ``patches.npz``]) as one checksummed byte string.
+"""The P&L map bundle: a map directory (``map.msg`` + ``config.yaml`` [+ ``patches.npz``, ``scan_accuracy.json``]) as one
+checksummed byte string.
 
 The server packs the directory once (an uncompressed tar: msgpack maps do not compress much
 and clients unpack with the standard library), serves it in chunks over Zenoh
@@ -17,7 +18,8 @@ from pathlib import Path
 __all__ = ["Bundle", "BundleError", "pack_map_dir", "unpack_bundle", "MAP_FILES"]
 
 MAP_FILES = ("map.msg", "config.yaml")
-OPTIONAL_FILES = ("patches.npz",)  # landmark patches for the light localizer's alignment (services.prebuild.patches)
+OPTIONAL_FILES = ("patches.npz",  # landmark patches for the light localizer's alignment (services.prebuild.patches)
+                  "scan_accuracy.json")  # the scan's registration error prebuild measured (services.localize.scan_error)
 DEFAULT_CHUNK = 512 * 1024
 
 

@@ -52,12 +52,13 @@ def add_gate_arguments(p: argparse.ArgumentParser) -> None:
                         "up for cameras coarser than VGA); larger: more frames, less accurate")
     p.add_argument("--max-sigma-cm", type=float, default=1.0,
                    help="the same for the camera centre, in centimetres (default 1)")
-    p.add_argument("--scan-sigma-mm", type=scan_sigma_arg, default=0.0, metavar="MM",
+    p.add_argument("--scan-sigma-mm", type=scan_sigma_arg, default="auto", metavar="MM",
                    help="the scan's registration error, 1-sigma in millimetres (the registration report's cloud-to-cloud "
-                        "or bundle error, or 'auto': measured from the scan as 'cristal scan check' does; default 0: "
-                        "a perfect scan). No camera is placed better than the scan: each "
-                        "reported 1-sigma then counts it (a camera between stations that disagree by MM turns by about "
-                        "MM / the distance to what it sees), so a pose beyond 3 sigma means what it says. Not a gate")
+                        "or bundle error; 0: a perfect scan). Default 'auto': what build-db or prebuild measured of "
+                        "the scan ('cristal scan check'), 0 where the scan could not tell. No camera is placed better "
+                        "than the scan: each reported 1-sigma counts it (a camera between stations that disagree by MM "
+                        "turns by about MM / the distance to what it sees), so a pose beyond 3 sigma means what it "
+                        "says. Not a gate: the same frames are reported")
     p.add_argument("--min-agreement", type=float, default=0.6, metavar="A",
                    help="(rm) a relocalization far from the last pose, or cold, needs its render to agree with the frame "
                         "this well (gradient correlation, -1..1; default 0.6; true places score 0.74-0.92 in the simulator's "
@@ -87,36 +88,44 @@ def scan_sigma_arg(text: str) -> float | str:
 
 
 def scan_sigma_m(args) -> float:
-    """``--scan-sigma-mm`` in metres (0 when the command has no such flag); ``auto`` must have been resolved
-    (:func:`resolve_scan_sigma`) by a command that has the scan."""
-    from services.cli import CliError
-
+    """``--scan-sigma-mm`` in metres, after :func:`resolve_scan_sigma` (0 when the command has no such flag, or
+    ``auto`` was not resolved)."""
     mm = getattr(args, "scan_sigma_mm", 0.0) or 0.0
-    if mm == "auto":
-        raise CliError("--scan-sigma-mm auto measures the scan, which this command does not load: run 'cristal scan "
-                       "check SCAN' and pass the number it prints")
-    return float(mm) / 1000.0
+    return 0.0 if mm == "auto" else float(mm) / 1000.0
 
 
-def resolve_scan_sigma(args, scan) -> None:
-    """``--scan-sigma-mm auto``: the registration error measured from ``scan`` itself
-    (:func:`services.io.registration.station_agreement`); 0 with a warning when the scan cannot tell (one station,
-    or a file that does not say which points each station has)."""
+def _accuracy_words(record: dict) -> str:
+    mm = record["scan_sigma_mm"]
+    if mm is None:
+        return "the scan's registration error unknown (it does not say which points each station has, or has one)"
+    return f"the scan's stations disagree by {mm:.1f} mm (range noise {record['noise_mm']:.1f} mm)"
+
+
+def resolve_scan_sigma(args, scan=None, db_meta: dict | None = None, map_dir=None) -> None:
+    """``--scan-sigma-mm auto`` (the default) into millimetres: what ``cristal build-db`` recorded in the database
+    (``db_meta``) or ``cristal prebuild`` beside the map (``map_dir``), else measured from ``scan`` itself
+    (:func:`services.localize.scan_error.measure_scan`), else 0 (a scan that cannot tell: one station, or a file
+    that does not say which points each station has)."""
     if getattr(args, "scan_sigma_mm", None) != "auto":
         return
-    from services.io.registration import station_agreement
+    from services.localize.scan_error import measure_scan, read_accuracy_mm
 
-    a = station_agreement(scan)
-    if a is None or not a.pairs:
-        log.warning("--scan-sigma-mm auto: the scan cannot tell its registration error (%s); taking 0",
-                    "no two stations share a surface" if a is not None else
-                    "it does not say which points each station has: E57 files, simulated scans and PLY written by "
-                    "'cristal scan convert' do")
-        args.scan_sigma_mm = 0.0
-        return
-    args.scan_sigma_mm = round(1e3 * a.registration_m, 2)
-    log.info("--scan-sigma-mm auto: the scan's stations disagree by %.1f mm (%d pairs; range noise %.1f mm)",
-             args.scan_sigma_mm, len(a.pairs), 1e3 * a.noise_m)
+    mm, source = None, None
+    if db_meta is not None and db_meta.get("scan_sigma_mm") is not None:
+        mm, source = float(db_meta["scan_sigma_mm"]), "the database"
+    elif map_dir is not None and (mm := read_accuracy_mm(map_dir)) is not None:
+        source = "the map"
+    elif scan is not None and db_meta is not None and "scan_sigma_mm" in db_meta:
+        source = "the database (unknown)"  # build-db measured this scan and could not tell: no need to again
+    elif scan is not None:
+        mm, source = measure_scan(scan)["scan_sigma_mm"], "the scan"
+    args.scan_sigma_mm = mm or 0.0
+    if mm is None:
+        log.info("--scan-sigma-mm auto: the scan's registration error is unknown (%s); each 1-sigma is the frame's own",
+                 source or "nothing recorded it")
+    else:
+        log.info("--scan-sigma-mm auto: the scan's stations disagree by %.1f mm (from %s), counted in each 1-sigma",
+                 mm, source)
 
 
 def register(sub) -> None:
@@ -293,6 +302,7 @@ def run_build_db(args) -> int:
     from services.cli import emit_summary, positions_picture, roi_polygon
     from services.features.xfeat import XFeatExtractor
     from services.io.scans import load_scan
+    from services.localize.scan_error import measure_scan
     from services.relocalize.database import DBConfig, build_database
     from services.relocalize.roi import RoiConfig, sample_positions
     from services.render.renderer import Renderer
@@ -307,17 +317,19 @@ def run_build_db(args) -> int:
     renderer = Renderer(scan, device=args.device)
     ext = XFeatExtractor(device=str(renderer.device))
     src = __import__("pathlib").Path(args.scan)
+    accuracy = measure_scan(scan)  # the scan's own error, for --scan-sigma-mm auto where the scan is not measured
     db = build_database(renderer, pos, ext, DBConfig(face_size=args.face_size, faces=args.faces),
-                        meta={"scan": str(src), "scan_bytes": src.stat().st_size, "spacing": args.spacing})
+                        meta={"scan": str(src), "scan_bytes": src.stat().st_size, "spacing": args.spacing,
+                              "scan_sigma_mm": accuracy["scan_sigma_mm"]})
     db.save(args.out)
     print(f"database {args.out}: {db.meta['positions']} positions, {db.n_views} views, {db.meta['features']:,} features "
-          f"in {db.meta['build_seconds']} s")
+          f"in {db.meta['build_seconds']} s; {_accuracy_words(accuracy)}")
     plural = "s" * (len(pos) != 1)
     picture = positions_picture(pos, args.out, scan=scan, label="database positions",
                                 title=f"relocalization database: {len(pos)} position{plural}, {args.spacing:g} m apart "
                                       f"(top view)")
     emit_summary({"out": args.out, "picture": picture and str(picture),
-                  **{k: db.meta[k] for k in ("positions", "views", "features", "build_seconds")}})
+                  **{k: db.meta[k] for k in ("positions", "views", "features", "build_seconds", "scan_sigma_mm")}})
     return 0
 
 
@@ -349,7 +361,7 @@ def run_localize(args) -> int:
     odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes) if args.odometry else None
     db = RelocDB.load(args.db)
     scan = load_scan(args.scan)
-    resolve_scan_sigma(args, scan)
+    resolve_scan_sigma(args, scan, db.meta)
     renderer = Renderer(scan, device=args.device)
     cfg = RMConfig(**rm_gates(args),
                    direct_points=0 if getattr(args, "no_direct", False) else RMConfig().direct_points,

@@ -33,6 +33,7 @@ def run_localize_pnl(args) -> int:
     from services.geometry.camera import Camera
     from services.io.sequence import open_sequence
     from services.io.trajectory import read_odometry
+    from services.localize.cli import resolve_scan_sigma
     from services.localize.pnl import PnlLocalizer
     from services.localize.runner import localize_and_report
     from services.prebuild.stella_map import MAP_FILE
@@ -46,6 +47,7 @@ def run_localize_pnl(args) -> int:
         cv2.setNumThreads(int(args.threads))  # -j 1: the one-core figure of benchmarks/RESULTS.md
     seq = open_sequence(args.sequence, camera=Camera.load(args.camera) if getattr(args, "camera", None) else None)
     odometry = read_odometry(args.odometry, seq.stamps, axes=args.odometry_axes) if getattr(args, "odometry", None) else None
+    resolve_scan_sigma(args, map_dir=map_dir if map_dir.is_dir() else map_dir.parent)
     loc = PnlLocalizer.load(map_dir, pnl_config(args))
     if loc.patches is None:
         log.info("%s has no landmark patches (a map from before them, or from stella_vslam): keypoint measurements only", map_dir)

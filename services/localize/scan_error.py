@@ -44,3 +44,45 @@ def median_depth(points_cam: np.ndarray) -> float:
     z = np.asarray(points_cam, np.float64).reshape(-1, 3)[:, 2]
     z = z[z > 0]
     return float(np.median(z)) if len(z) else float("nan")
+
+
+# ---- the scan's error, measured once where the scan is loaded (build-db, prebuild) and read where it is not ------
+
+ACCURACY_FILE = "scan_accuracy.json"  # beside a P&L map (and in its bundle): what prebuild measured of the scan
+ACCURACY_VERSION = 1
+
+
+def measure_scan(scan) -> dict:
+    """What :func:`services.io.registration.station_agreement` says of ``scan``, as recorded with a database or map:
+    ``scan_sigma_mm`` is None when the scan cannot tell (one station, or its stations' points unknown)."""
+    from services.io.registration import station_agreement
+
+    a = station_agreement(scan)
+    ok = a is not None and bool(a.pairs)
+    return {"format_version": ACCURACY_VERSION, "stations": len(scan.stations),
+            "scan_sigma_mm": round(1e3 * a.registration_m, 2) if ok else None,
+            "noise_mm": round(1e3 * a.noise_m, 2) if ok else None, "pairs": len(a.pairs) if a is not None else 0}
+
+
+def write_accuracy(map_dir, record: dict) -> None:
+    """``record`` (:func:`measure_scan`) into ``map_dir/scan_accuracy.json``, atomically."""
+    import json
+    from pathlib import Path
+
+    from services.io.atomic import atomic_write
+
+    with atomic_write(Path(map_dir) / ACCURACY_FILE, "w") as f:
+        json.dump(record, f, indent=1)
+
+
+def read_accuracy_mm(map_dir) -> float | None:
+    """The scan error recorded beside a map (mm), None when there is none or it could not be measured."""
+    import json
+    from pathlib import Path
+
+    p = Path(map_dir) / ACCURACY_FILE
+    try:
+        v = json.loads(p.read_text()).get("scan_sigma_mm")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1000 else None

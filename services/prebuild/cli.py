@@ -77,6 +77,7 @@ def run_prebuild(args) -> int:
     from services.geometry.camera import Camera
     from services.io.scans import load_scan
     from services.prebuild.builder import BuildConfig, build_map
+    from services.localize.scan_error import measure_scan, write_accuracy
     from services.prebuild.patches import PATCH_FILE
     from services.prebuild.stella_map import CONFIG_FILE, MAP_FILE, check_map_dict, map_to_dict, write_config, write_map
     from services.relocalize.roi import RoiConfig, sample_positions
@@ -122,14 +123,19 @@ def run_prebuild(args) -> int:
     write_config(out / CONFIG_FILE, m.cameras[cfg.camera_name], next(iter(m.orb_params.values())), args.max_keypoints)
     if patches is not None:  # beside the map, for our light localizer; stella_vslam reads map.msg alone
         patches.save(out / PATCH_FILE)
+    accuracy = measure_scan(scan)  # the scan's own error, for the light localizer's --scan-sigma-mm auto
+    write_accuracy(out, accuracy)
     total = time.perf_counter() - t0
     print(f"map {out}: {m.n_keyframes} keyframes, {m.n_landmarks:,} landmarks, {size / 1e6:.1f} MB, "
-          f"built in {stats['build_s']:.1f} s ({total:.1f} s with loading); stella_vslam config {out / CONFIG_FILE}")
+          f"built in {stats['build_s']:.1f} s ({total:.1f} s with loading); stella_vslam config {out / CONFIG_FILE}; "
+          + ("the scan's registration error unknown" if accuracy["scan_sigma_mm"] is None else
+             f"the scan's stations disagree by {accuracy['scan_sigma_mm']:.1f} mm"))
     picture = positions_picture(pos, out / MAP_FILE, landmarks=m.lm_pos, label="keyframe positions",
                                 title=f"map: {m.n_keyframes} keyframes at {len(pos)} positions, {m.n_landmarks:,} "
                                       f"landmarks (grey by height; top view)")
     emit_summary({"out": str(out), "bytes": size, "total_s": round(total, 2), "stage": args.stage,
-                  "points": len(scan), "picture": picture and str(picture), **stats})
+                  "points": len(scan), "picture": picture and str(picture), "scan_sigma_mm": accuracy["scan_sigma_mm"],
+                  **stats})
     return 0
 
 

@@ -207,6 +207,15 @@ class RelocDB:
                      desc=self.desc.astype(np.float16), vlad=self.vlad.astype(np.float16), vocab=self.vocab,
                      meta=np.array(json.dumps({**self.meta, "format_version": DB_FORMAT_VERSION})))
 
+    @staticmethod
+    def load_meta(path: str | Path) -> dict:
+        """The database's meta alone (one small array of the archive); {} when it cannot be read (``load`` says why)."""
+        try:
+            with np.load(path) as z:
+                return json.loads(str(z["meta"]))
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+            return {}
+
     @classmethod
     def load(cls, path: str | Path) -> "RelocDB":
         path = Path(path)

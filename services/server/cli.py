@@ -124,10 +124,13 @@ def run_serve(args) -> int:
         import torch
 
         torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
-        if args.scan_sigma_mm == "auto":  # measured from the scan (a cached scan loads again in milliseconds)
+        if args.scan_sigma_mm == "auto":  # what build-db recorded, else measured (a cached scan loads in milliseconds)
             from services.io.scans import load_scan
+            from services.relocalize.database import RelocDB
 
-            resolve_scan_sigma(args, load_scan(args.scan))
+            resolve_scan_sigma(args, load_scan(args.scan), RelocDB.load_meta(args.db))
+    elif args.map_dir:
+        resolve_scan_sigma(args, map_dir=args.map_dir)
     cfg = ServerConfig(site=args.site, map_id=args.map_id, server_id=args.server_id, workers=args.workers,
                        max_clients=args.max_clients, idle_s=args.idle, evict_silent_s=args.evict_after,
                        metrics_port=args.metrics_port, metrics_addr=args.metrics_addr)
