@@ -63,6 +63,10 @@ SITES: dict[str, tuple[list[str], list[str], list[str]]] = {
     # hundredths of a degree off, panoramas exposed apart, mixed pixels along silhouettes (services/sim/lidar.py)
     "office-survey": (["--preset", "office", "--seed", "1", "--scan-flaws", "survey"], [], []),
     "office-poor": (["--preset", "office", "--seed", "1", "--scan-flaws", "poor"], [], []),
+    # the survey's registration alone (stop 62): what the scan's own error does to the reported 1-sigma
+    # (benchmarks/scan_error.py), on the default walk and on another layout
+    "office-reg": (["--preset", "office", "--seed", "1", "--scan-flaws", "registration"], [], []),
+    "office-s8-reg": (["--preset", "office", "--seed", "8", "--scan-flaws", "registration"], [], []),
     # its map takes ~45 min on 2 cores (RESULTS stop 33): --maps builds it only when --sites names it
     "warehouse-s3": (["--preset", "warehouse", "--seed", "3"], ["--spacing", "2"], ["--spacing", "2"]),
 }

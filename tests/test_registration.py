@@ -61,11 +61,20 @@ def test_scan_check_prints_the_registration_error_and_its_number_for_localize(tm
     from services.cli import main
 
     save_ply(_stations([0.006, 0.006, 0.006], np.random.default_rng(2)), tmp_path / "s.ply")
-    assert main(["scan", "check", str(tmp_path / "s.ply")]) == 0
+    assert main(["scan", "check", str(tmp_path / "s.ply"), "--plot", str(tmp_path / "check.png")]) == 0
     out = capsys.readouterr().out
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["registration_mm"] == pytest.approx(6.0, rel=0.15) and summary["stations"] == 2
-    assert f"--scan-sigma-mm {summary['registration_mm']:.1f}" in out
+    assert f"pass {summary['registration_mm']:.1f}" in out
+    # the picture: the one pair's line, in the colour of 6 mm on the 0-10 mm scale (between green and red)
+    import cv2
+    from matplotlib import colormaps
+
+    assert summary["picture"] == str(tmp_path / "check.png")
+    img = cv2.imread(summary["picture"])[:, :, ::-1].astype(int)
+    want = np.array(colormaps["RdYlGn_r"](summary["registration_mm"] / 10.0)[:3]) * 255
+    plot_area = img[:, :int(0.75 * img.shape[1])]  # (the colour bar on the right holds every colour)
+    assert np.sum(np.abs(plot_area - want).sum(axis=2) < 30) > 300
     scan = load_scan(tmp_path / "s.ply")
     scan.meta.pop("station_points")
     save_ply(scan, tmp_path / "merged.ply")

@@ -215,6 +215,41 @@ def plot_positions_topdown(positions: np.ndarray, out_png: str | Path, scan: "Sc
     return _save(fig, out_png)
 
 
+def plot_station_agreement(agreement, scan: "Scan", out_png: str | Path, max_points: int = 200_000) -> Path:
+    """``cristal scan check --plot``: the stations seen from above over the scan, each pair that shares surfaces
+    joined by a line coloured by how far they disagree (services.io.registration; the worse direction of the two)."""
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    C = np.array([s.t for s in scan.stations], float).reshape(-1, 3)
+    worst: dict[tuple[int, int], float] = {}
+    for p in agreement.pairs:
+        key = (min(p.a, p.b), max(p.a, p.b))
+        worst[key] = max(worst.get(key, 0.0), 1e3 * p.registration_m)
+    top = max(10.0, max(worst.values(), default=0.0))
+    norm, cmap = Normalize(0.0, top), colormaps["RdYlGn_r"]
+    fig = _figure(8, 7)
+    ax = fig.add_subplot()
+    lo, hi = _box(C)
+    _background(ax, lo, hi, float(C[:, 2].max()) + 0.5, scan, None, max_points)
+    for (a, b), mm in sorted(worst.items(), key=lambda kv: kv[1]):
+        ax.plot(C[[a, b], 0], C[[a, b], 1], "-", color=cmap(norm(mm)), lw=2.5, zorder=2)
+        ax.annotate(f"{mm:.1f}", C[[a, b], :2].mean(axis=0), fontsize=7, ha="center", va="center", zorder=4,
+                    bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
+    ax.plot(C[:, 0], C[:, 1], "o", color=EST_COLOR, ms=6, ls="none", zorder=3, label=f"stations ({len(C)})")
+    for k, c in enumerate(C):
+        ax.annotate(str(k), c[:2], xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=4)
+    fig.colorbar(ScalarMappable(norm, cmap), ax=ax, shrink=0.7, label="registration error between the two (mm)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"how far the stations disagree: {1e3 * agreement.registration_m:.1f} mm overall (top view)")
+    ax.grid(True, lw=0.3, alpha=0.5)
+    ax.legend(loc="best", fontsize=8, framealpha=0.85)
+    return _save(fig, out_png)
+
+
 def plot_errors(result: "ApeResult", out_png: str | Path, title: str | None = None) -> Path:
     """Translation (cm) and rotation (deg) error over time with RMSE lines; frames without a pose marked."""
     scale, _ = seconds_per_unit(sorted(result.stamps + result.lost_stamps, key=float))  # stamps in ns: the axis in s

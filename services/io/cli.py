@@ -13,7 +13,7 @@ examples:
   cristal scan convert big.laz small.ply --voxel 0.02    one point per 2 cm voxel (colour = voxel mean)
   cristal scan convert big.ply half.ply --fraction 0.5   a random half (same --seed, same half)
   cristal scan convert raw.e57 scan.ply --drop-floating  without the points that lie on no surface (mixed pixels)
-  cristal scan check survey.e57                    how well the stations agree: the registration error, in mm
+  cristal scan check survey.e57 --plot check.png   how well the stations agree: the registration error, in mm
 
 formats: .ply (binary or ASCII; uchar, ushort or float colours), .e57 (every scan, moved by its pose
 into the file's world frame), .las/.laz (16-bit colours scaled to 8 bit). Points with NaN/inf
@@ -33,13 +33,14 @@ The last stdout line is a JSON summary (points, bounds_min/max, origin, stations
 CHECK_EPILOG = """\
 examples:
   cristal scan check survey.e57
-  cristal scan check site/scan.ply --sample 50000
+  cristal scan check site/scan.ply --sample 50000 --plot check.png
 
 Where two stations saw the same surface their points should lie on it together. For a sample of each station's
 points on flat surfaces this measures the distance to the other station's local plane and to its own (the range
 noise, which the first holds too): the registration's share is what is left. The result is what a registration
-report's cloud-to-cloud error says, and the number 'cristal localize / serve / stream --scan-sigma-mm' takes: no
-camera is placed better than its scan, and each pose's reported 1-sigma then says so ('auto' measures it there).
+report's cloud-to-cloud error says. 'cristal build-db' and 'prebuild' measure it too and record it with the database
+and the map; 'cristal localize / serve / stream' count it in each pose's reported 1-sigma (--scan-sigma-mm, default
+auto): no camera is placed better than its scan, and its 1-sigma then says so.
 A camera between stations that disagree by s errs up to about 2 s at its centre and s / d in orientation (d: the
 distance to what it sees): 8 mm at 2 m is 1.6 cm / 0.23 deg, beyond the 1 cm / 0.1 deg a perfect scan allows.
 
@@ -86,6 +87,8 @@ def register(sub) -> None:
                       epilog=CHECK_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     k.add_argument("scan", metavar="SCAN", help="scan file (.ply, .e57, .las, .laz) that knows its stations' points")
     k.add_argument("--sample", type=int, default=20_000, metavar="N", help="points sampled per station (default 20000)")
+    k.add_argument("--plot", metavar="OUT.png", help="also draw the stations from above, each pair that shares "
+                                                        "surfaces joined in the colour of its disagreement")
     k.add_argument("--allow-no-color", action="store_true", help="accept a scan without colours (grey points)")
     k.set_defaults(func=run_check)
 
@@ -165,9 +168,16 @@ def run_check(args) -> int:
         print("  station  against  shared points  distance mm  registration mm")
         for p in sorted(a.pairs, key=lambda p: -p.registration_m):
             print(f"  {p.a:7d}  {p.b:7d}  {p.n:13,d}  {1e3 * p.between_m:11.1f}  {1e3 * p.registration_m:15.1f}")
-        print(f"  a camera placed in it errs up to {mm / 5:.1f} cm and {mm / 2000 * 57.2958:.2f} deg seen at 2 m: pass "
-              f"--scan-sigma-mm {mm:.1f} (or auto) to 'cristal localize' / 'serve' / 'stream' so its reported 1-sigma "
-              "says so" + ("; over 1 cm: check the registration" if mm > 10 else ""))
+        print(f"  a camera placed in it errs up to {mm / 5:.1f} cm and {mm / 2000 * 57.2958:.2f} deg seen at 2 m: "
+              "'cristal build-db' and 'prebuild' record it, and each pose's reported 1-sigma counts it ("
+              f"--scan-sigma-mm auto; or pass {mm:.1f})" + ("; over 1 cm: check the registration" if mm > 10 else ""))
+        if args.plot:
+            from services.eval.plots import drawn, plot_station_agreement
+
+            path = drawn("the stations", plot_station_agreement, a, scan, args.plot)
+            summary["picture"] = path and str(path)
+            if path is not None:
+                print(f"picture: {path} (the stations from above; each pair joined in the colour of its disagreement)")
     emit_summary(summary)
     return 0
 

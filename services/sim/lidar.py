@@ -60,6 +60,8 @@ FLAWS = {  # ``cristal sim --scan-flaws NAME``
     "none": ScanFlaws(),
     # a good registration (2-4 mm between setups), HDR panoramas a little apart, the scanner's mixed-pixel filter on
     "survey": ScanFlaws(registration_m=0.003, registration_deg=0.01, gain=0.1, tint=0.03, mixed_pixels=0.3),
+    # only the survey's registration (3 mm / 0.01 deg per station): what it alone costs a camera (scan_error.py)
+    "registration": ScanFlaws(registration_m=0.003, registration_deg=0.01),
     # a hurried one: centimetre registration, panoramas visibly apart, no mixed-pixel filter
     "poor": ScanFlaws(registration_m=0.01, registration_deg=0.03, gain=0.3, tint=0.08, mixed_pixels=1.0),
 }
