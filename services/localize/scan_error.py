@@ -6,10 +6,11 @@ or bundle error; ``cristal scan check`` measures it). A camera that sees surface
 is placed between them, whatever its own matches say: it turns by up to ``s / d`` (``d`` the median distance to what it
 sees) where the near surfaces come from one station and the far ones from another, and its centre moves by ``s`` and
 by as much again, the turn traded for a shift at that depth: ``2 s``. Without that term the poses on such a scan err
-beyond 3 x their 1-sigma. Simulated office walks, stations registered 3 mm / 0.01 deg off per axis (benchmarks/RESULTS.md,
-stop 62): seed 1, 7.4 mm measured, R&M 77 of 279 poses beyond 3 sigma (0.98 cm / 0.127 deg RMSE), P&L 206 of 272;
-seed 8, 3.3 mm, R&M 131 of 246 (0.74 cm / 0.111 deg). With it: 0 to 4. (``s / 2d`` left 49 beyond on seed 1, all in
-orientation; a centre term of ``s`` left seed 8's centre errors a median 1.7 x their 1-sigma.)
+beyond 3 x their 1-sigma. Simulated office walks, stations registered 3 mm / 0.01 deg off per axis
+(``python benchmarks/scan_error.py``, benchmarks/RESULTS.md stop 62): seed 1, 7.2 mm measured, Render & Match 163 of
+279 poses beyond 3 sigma (0.98 cm / 0.127 deg RMSE), P&L 206 of 272; seed 8, 4.4 mm, 131 of 246 and 175 of 213. With
+it: 0, 0, 2, 0, error / 1-sigma a median 0.44-0.74. (``s / 2d`` left 49 beyond on seed 1, all in orientation; a
+centre term of ``s`` left seed 8's centre errors a median 1.7 x their 1-sigma.)
 
 The term widens only what is reported (``sigma_m``/``sigma_deg`` on the wire and in ``TRAJ.frames.csv``); the report
 gates keep judging the frame's own uncertainty, since no frame can do better than the scan it is placed in.
