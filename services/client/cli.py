@@ -96,8 +96,8 @@ def run_stream(args) -> int:
     from services.client.fallback import load_local
     from services.client.stream import sources_path, stream_sequence
     from services.geometry.camera import Camera
-    from services.localize.cli import scan_sigma_m
     from services.io.sequence import open_sequence
+    from services.localize.cli import scan_sigma_m
     from services.zconfig import make_config
 
     cam = Camera.load(args.camera) if args.camera else None

@@ -124,11 +124,12 @@ def run_serve(args) -> int:
         import torch
 
         torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
-        if args.scan_sigma_mm == "auto":  # what build-db recorded, else measured (a cached scan loads in milliseconds)
+        if args.scan_sigma_mm == "auto":  # what build-db recorded, else measured from the scan (loaded once more)
             from services.io.scans import load_scan
             from services.relocalize.database import RelocDB
 
-            resolve_scan_sigma(args, load_scan(args.scan), RelocDB.load_meta(args.db))
+            meta = RelocDB.load_meta(args.db)
+            resolve_scan_sigma(args, None if "scan_sigma_mm" in meta else load_scan(args.scan), meta)
     elif args.map_dir:
         resolve_scan_sigma(args, map_dir=args.map_dir)
     cfg = ServerConfig(site=args.site, map_id=args.map_id, server_id=args.server_id, workers=args.workers,
