@@ -112,8 +112,9 @@ def _stamp(scan_path, what: dict) -> dict:
     return {"scan": str(scan_path.resolve()), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns, **what}
 
 
-def build_or_load_db(renderer, scan, scan_path, out, spacing: float, regenerate: bool):
-    """The relocalization database in OUT/reloc.npz, as ``cristal build-db`` builds it (reused while it matches)."""
+def build_or_load_db(renderer, scan, scan_path, out, spacing: float, regenerate: bool, scan_sigma_mm: float | None = None):
+    """The relocalization database in OUT/reloc.npz, as ``cristal build-db`` builds it (reused while it matches), with
+    the scan's registration error ``scan_sigma_mm`` in its meta."""
     import json
 
     from services.features.xfeat import XFeatExtractor
@@ -132,18 +133,21 @@ def build_or_load_db(renderer, scan, scan_path, out, spacing: float, regenerate:
         raise ValueError(f"{scan_path}: no position in free space for the relocalization database")
     log.info("[2/5] relocalization database: XFeat on cubemap renders at %d positions", len(pos))
     db = build_database(renderer, pos, XFeatExtractor(device=str(renderer.device)), cfg,
-                        meta={"scan": str(scan_path), "scan_bytes": scan_path.stat().st_size, "spacing": spacing})
+                        meta={"scan": str(scan_path), "scan_bytes": scan_path.stat().st_size, "spacing": spacing,
+                              "scan_sigma_mm": scan_sigma_mm})
     db.save(path)
     atomic_write_text(stamp_path, json.dumps(stamp, indent=1) + "\n")
     return db, True
 
 
-def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, regenerate: bool):
-    """The P&L map in OUT/pnl/, as ``cristal prebuild`` builds it; None (with a warning) if it has no landmark."""
+def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, regenerate: bool, accuracy: dict | None = None):
+    """The P&L map in OUT/pnl/, as ``cristal prebuild`` builds it, with ``accuracy`` (the scan's registration error,
+    ``services.localize.scan_error.measure_scan``) beside it; None (with a warning) if it has no landmark."""
     import json
     import shutil
 
     from services.io.atomic import atomic_write_text
+    from services.localize.scan_error import write_accuracy
     from services.prebuild.builder import BuildConfig, build_map
     from services.prebuild.patches import PATCH_FILE
     from services.prebuild.stella_map import CONFIG_FILE, MAP_FILE, check_map_dict, map_to_dict, write_config, write_map
@@ -173,6 +177,8 @@ def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, re
     write_config(d / CONFIG_FILE, m.cameras[cfg.camera_name], next(iter(m.orb_params.values())), cfg.orb.max_keypoints)
     if patches is not None:
         patches.save(d / PATCH_FILE)
+    if accuracy is not None:
+        write_accuracy(d, accuracy)
     atomic_write_text(stamp_path, json.dumps(stamp, indent=1) + "\n")
     return d, True
 
@@ -354,21 +360,30 @@ def run(args) -> int:
     import torch
 
     from services.io.scans import load_scan
+    from services.localize.scan_error import measure_scan, write_accuracy
     from services.render.renderer import Renderer
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))  # 1 unless -j: faster on a loaded 2-core box
     with clock.step("database"):
         scan = load_scan(scan_path)
         renderer = Renderer(scan, device=args.device)
-        db, _ = build_or_load_db(renderer, scan, scan_path, out, args.db_spacing, args.regenerate)
+        accuracy = measure_scan(scan)  # how far the scan's stations disagree: counted in each reported 1-sigma
+        db, _ = build_or_load_db(renderer, scan, scan_path, out, args.db_spacing, args.regenerate,
+                                 accuracy["scan_sigma_mm"])
     with clock.step("pnl_map"):
-        map_dir, _ = build_or_load_map(renderer, scan, scan_path, seq.camera, out, args.map_spacing, args.regenerate)
+        map_dir, _ = build_or_load_map(renderer, scan, scan_path, seq.camera, out, args.map_spacing, args.regenerate,
+                                       accuracy)
+        if map_dir is not None:
+            write_accuracy(map_dir, accuracy)  # (a map reused from an earlier run gets it too)
+    scan_sigma_mm = accuracy["scan_sigma_mm"] or 0.0
+    log.info("[2/5] the scan's stations disagree by %.1f mm: counted in each pose's reported 1-sigma", scan_sigma_mm)
 
     # ---- serve + stream over Zenoh ----------------------------------------------------------------
     from protocol import keys
     from services.client.client import LocalizationClient
     from services.client.fallback import load_local
     from services.client.stream import sources_path, stream_sequence
+    from services.localize.render_match import RMConfig
     from services.server.backend import RMBackend
     from services.server.service import LocalizationServer, ServerConfig
     from services.zconfig import make_config, open_session
@@ -382,7 +397,8 @@ def run(args) -> int:
         with clock.step("service_start"):
             router = open_session(make_config(None, mode="router", listen=[endpoint], default_role="server"))
             stack.callback(router.close)
-            server = LocalizationServer(RMBackend.from_loaded(scan, renderer, db),
+            server = LocalizationServer(RMBackend.from_loaded(scan, renderer, db,
+                                                              cfg=RMConfig(scan_sigma_m=scan_sigma_mm / 1000.0)),
                                         ServerConfig(server_id=SERVER_ID, idle_s=3600.0),
                                         make_config(None, connect=[endpoint], default_role="server"), bundle_dir=map_dir)
             server.start()
@@ -458,7 +474,8 @@ def run(args) -> int:
                      + f"; total {wall:.0f}/{cpu:.0f}")
         print("\n".join(lines), flush=True)
 
-        summary = {"site": str(site), "simulated": simulated, "points": len(scan), "sequence": args.sequence, "frames": n,
+        summary = {"site": str(site), "simulated": simulated, "points": len(scan), "scan_sigma_mm": scan_sigma_mm,
+                   "sequence": args.sequence, "frames": n,
                    "poses": len(traj), "estimate": str(est_path), "overlay": str(overlay) if overlay else None,
                    "plots": str(plots), "endpoint": endpoint, "published": published["n"],
                    "local_fallback": fallback is not None, "method": "render-match over zenoh + local P&L",

@@ -59,6 +59,9 @@ def test_demo_runs_the_whole_loop_over_zenoh(demo_run):
     assert img is not None and img.shape[0] >= 100 and img.shape[1] >= 3 * 150
     assert (out / "plots" / "trajectory.png").stat().st_size > 10_000 and (out / "plots" / "errors.png").is_file()
     assert any(p.name == "map.msg" for p in (out / "client-cache").rglob("*"))  # the P&L bundle came over Zenoh
+    # the scan's registration error, measured and sent with the map bundle (a perfect simulated scan: about 1 mm)
+    assert 0.0 <= s["scan_sigma_mm"] < 2.0
+    assert any(p.name == "scan_accuracy.json" for p in (out / "client-cache").rglob("*"))
 
 
 def test_keep_server_serves_another_client_and_stops_cleanly_on_ctrl_c(demo_run, small_site, tmp_path):
