@@ -55,6 +55,11 @@ def test_which_points_each_station_has_survives_ply_and_ordered_subsets(tmp_path
     assert station_points(scan.subset(keep)) == [len(range(0, n0, 3)), int(keep[n0:].sum())]
     assert station_points(scan.subset(np.array([0, 1, n0 + 5]))) == [2, 1]
     assert station_points(scan.subset(np.array([n0 + 5, 0]))) is None  # reordered: no longer known
+    from services.io.decimate import random_decimate, voxel_decimate
+
+    half = random_decimate(scan, 0.5)
+    assert sum(station_points(half)) == len(half) and min(station_points(half)) > 0.4 * n0
+    assert "station_points" not in voxel_decimate(scan, 0.05).meta  # a voxel mixes the stations' points
 
 
 def test_scan_check_prints_the_registration_error_and_its_number_for_localize(tmp_path, capsys):

@@ -64,7 +64,9 @@ took Render & Match from 270 to 278 of 300 frames and 0.34 to 0.20 cm. Usually 0
 when far more would go (surfaces seen only from far stations). Runs before --voxel / --fraction.
 
 Coordinates are written in the world frame: double when the scan needed an origin (large survey
-coordinates), float otherwise. Scanner stations are kept as 'comment cristal_station' header lines.
+coordinates), float otherwise. Scanner stations are kept as 'comment cristal_station' header lines, and which
+points each station has ('cristal scan check' needs it) as 'comment cristal_station_points'; --voxel loses that
+(a voxel's point stands for every station's), --fraction and --drop-floating keep it.
 """
 
 

@@ -64,6 +64,7 @@ def voxel_decimate(scan: Scan, voxel_size: float) -> Scan:
     xyz = scan.xyz[keep]
     rgb = np.rint(mean(scan.rgb))
 
-    out = Scan(xyz, rgb.astype(np.uint8), scan.origin.copy(), list(scan.stations), scan.source, dict(scan.meta))
+    meta = {k: v for k, v in scan.meta.items() if k != "station_points"}  # (a voxel's point stands for every station's)
+    out = Scan(xyz, rgb.astype(np.uint8), scan.origin.copy(), list(scan.stations), scan.source, meta)
     out.meta["decimation"] = {"method": "voxel", "voxel_size": voxel_size, "points_before": n}
     return out
