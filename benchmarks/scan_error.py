@@ -14,7 +14,6 @@ A table prints; --json writes the rows.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
 import sys
@@ -23,6 +22,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from services.eval.ape import compute_ape, uncertainty_check  # noqa: E402
+from services.io.frame_log import frame_log_path, read_frame_log  # noqa: E402
 from services.io.trajectory import read_tum  # noqa: E402
 
 CRISTAL = [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main(sys.argv[1:]))"]
@@ -37,20 +38,14 @@ def _run(*args) -> dict:
 
 
 def honesty(gt_path: Path, est_path: Path) -> dict:
-    """Frames, APE RMSE and how the errors compare with each pose's reported 1-sigma (TRAJ.frames.csv)."""
-    gt = read_tum(gt_path).as_dict()
-    rows = {r["stamp"]: r for r in csv.DictReader(open(est_path.with_suffix(".frames.csv")))}
-    e = []
-    for s, T in read_tum(est_path).as_dict().items():
-        dt, dr = T.distance_to(gt[s])
-        e.append((dt, dr, float(rows[s]["sigma_cm"]) / 100, float(rows[s]["sigma_deg"])))
-    a = np.array(e).reshape(-1, 4)
-    rt, rr = a[:, 0] / a[:, 2], a[:, 1] / a[:, 3]
-    return {"frames": len(a), "rmse_cm": round(100 * float(np.sqrt(np.mean(a[:, 0] ** 2))), 2),
-            "rmse_deg": round(float(np.sqrt(np.mean(a[:, 1] ** 2))), 3),
-            "sigma_cm": round(100 * float(np.median(a[:, 2])), 2), "sigma_deg": round(float(np.median(a[:, 3])), 3),
-            "beyond_3sigma": int(np.sum((rt > 3) | (rr > 3))),
-            "ratio_centre": round(float(np.median(rt)), 2), "ratio_deg": round(float(np.median(rr)), 2)}
+    """Frames, APE RMSE and how the errors compare with each pose's reported 1-sigma (TRAJ.frames.csv), as
+    ``cristal eval`` compares them (services.eval.ape.uncertainty_check)."""
+    a = compute_ape(read_tum(gt_path), read_tum(est_path), "none")
+    u = uncertainty_check(a, read_frame_log(frame_log_path(est_path)))
+    return {"frames": len(a.stamps), "rmse_cm": round(100 * a.trans_rmse, 2), "rmse_deg": round(a.rot_rmse_deg, 3),
+            "sigma_cm": round(100 * float(np.median(u["sigma_m"])), 2),
+            "sigma_deg": round(float(np.median(u["sigma_deg"])), 3), "beyond_3sigma": u["beyond_3sigma"],
+            "ratio_centre": round(u["t_ratio_median"], 2), "ratio_deg": round(u["r_ratio_median"], 2)}
 
 
 def main() -> int:

@@ -102,20 +102,14 @@ def build(root: Path, name: str, maps: bool) -> None:
         log.info("%s: %s in %.0f s", name, what, time.perf_counter() - t0)
 
 
-def _hash_file(h, path: Path) -> None:
+def _hash_file(h, path: Path, skip_header: bytes | None = None) -> None:
+    """The file's bytes; with ``skip_header``, a PLY header's lines that start with it left out."""
     with open(path, "rb") as f:
-        while chunk := f.read(1 << 22):
-            h.update(chunk)
-
-
-def _hash_scan(h, path: Path) -> None:
-    """The scan file, less its header's station point counts (written since stop 62: the same points, the same
-    walks, the same fingerprint as before)."""
-    with open(path, "rb") as f:
-        while (line := f.readline()) and line.strip() != b"end_header":
-            if not line.startswith(b"comment cristal_station_points"):
-                h.update(line)
-        h.update(line)
+        if skip_header is not None:
+            while (line := f.readline()) and line.strip() != b"end_header":
+                if not line.startswith(skip_header):
+                    h.update(line)
+            h.update(line)
         while chunk := f.read(1 << 22):
             h.update(chunk)
 
@@ -128,7 +122,8 @@ def fingerprint(site: Path, method: str) -> str | None:
     seq = site / "seq_00"
     h = hashlib.sha1()
     try:
-        _hash_scan(h, site / "scan.ply")
+        # (less the station point counts written since stop 62: the same points, the same walks, the same fingerprint)
+        _hash_file(h, site / "scan.ply", skip_header=b"comment cristal_station_points")
         for f in ("rgb.txt", "groundtruth.txt", "camera.json"):
             _hash_file(h, seq / f)
         images = sorted((seq / "rgb").iterdir())

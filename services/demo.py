@@ -140,14 +140,12 @@ def build_or_load_db(renderer, scan, scan_path, out, spacing: float, regenerate:
     return db, True
 
 
-def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, regenerate: bool, accuracy: dict | None = None):
-    """The P&L map in OUT/pnl/, as ``cristal prebuild`` builds it, with ``accuracy`` (the scan's registration error,
-    ``services.localize.scan_error.measure_scan``) beside it; None (with a warning) if it has no landmark."""
+def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, regenerate: bool):
+    """The P&L map in OUT/pnl/, as ``cristal prebuild`` builds it; None (with a warning) if it has no landmark."""
     import json
     import shutil
 
     from services.io.atomic import atomic_write_text
-    from services.localize.scan_error import write_accuracy
     from services.prebuild.builder import BuildConfig, build_map
     from services.prebuild.patches import PATCH_FILE
     from services.prebuild.stella_map import CONFIG_FILE, MAP_FILE, check_map_dict, map_to_dict, write_config, write_map
@@ -177,8 +175,6 @@ def build_or_load_map(renderer, scan, scan_path, camera, out, spacing: float, re
     write_config(d / CONFIG_FILE, m.cameras[cfg.camera_name], next(iter(m.orb_params.values())), cfg.orb.max_keypoints)
     if patches is not None:
         patches.save(d / PATCH_FILE)
-    if accuracy is not None:
-        write_accuracy(d, accuracy)
     atomic_write_text(stamp_path, json.dumps(stamp, indent=1) + "\n")
     return d, True
 
@@ -360,7 +356,7 @@ def run(args) -> int:
     import torch
 
     from services.io.scans import load_scan
-    from services.localize.scan_error import measure_scan, write_accuracy
+    from services.localize.scan_error import describe, measure_scan, write_accuracy
     from services.render.renderer import Renderer
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))  # 1 unless -j: faster on a loaded 2-core box
@@ -371,12 +367,11 @@ def run(args) -> int:
         db, _ = build_or_load_db(renderer, scan, scan_path, out, args.db_spacing, args.regenerate,
                                  accuracy["scan_sigma_mm"])
     with clock.step("pnl_map"):
-        map_dir, _ = build_or_load_map(renderer, scan, scan_path, seq.camera, out, args.map_spacing, args.regenerate,
-                                       accuracy)
+        map_dir, _ = build_or_load_map(renderer, scan, scan_path, seq.camera, out, args.map_spacing, args.regenerate)
         if map_dir is not None:
-            write_accuracy(map_dir, accuracy)  # (a map reused from an earlier run gets it too)
+            write_accuracy(map_dir, accuracy)  # as prebuild does (and a map reused from an earlier run gets it too)
     scan_sigma_mm = accuracy["scan_sigma_mm"] or 0.0
-    log.info("[2/5] the scan's stations disagree by %.1f mm: counted in each pose's reported 1-sigma", scan_sigma_mm)
+    log.info("[2/5] %s: counted in each pose's reported 1-sigma", describe(accuracy))
 
     # ---- serve + stream over Zenoh ----------------------------------------------------------------
     from protocol import keys

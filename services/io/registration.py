@@ -49,20 +49,20 @@ class StationAgreement:
     stations: int
     pairs: list[PairAgreement] = field(default_factory=list)
 
+    def _pooled(self, value) -> float:
+        """RMS of ``value(pair)`` over the pairs, weighted by their shared points (NaN when no two share a surface)."""
+        w = sum(p.n for p in self.pairs)
+        return math.sqrt(sum(p.n * value(p) ** 2 for p in self.pairs) / w) if w else float("nan")
+
     @property
     def registration_m(self) -> float:
-        """The scan's registration error: the pairs' registration share, RMS weighted by their shared points (NaN
-        when no two stations share a surface)."""
-        w = sum(p.n for p in self.pairs)
-        return math.sqrt(sum(p.n * p.registration_m ** 2 for p in self.pairs) / w) if w else float("nan")
+        """The scan's registration error: the pairs' registration share, pooled."""
+        return self._pooled(lambda p: p.registration_m)
 
     @property
     def noise_m(self) -> float:
-        w = sum(p.n for p in self.pairs)
-        return math.sqrt(sum(p.n * p.own_m ** 2 for p in self.pairs) / w) if w else float("nan")
-
-    def worst(self) -> PairAgreement | None:
-        return max(self.pairs, key=lambda p: p.registration_m, default=None)
+        """The range noise, pooled the same way."""
+        return self._pooled(lambda p: p.own_m)
 
 
 def _plane_distances(tree, pts: np.ndarray, k: int, radius_m: float, skip_self: bool) -> np.ndarray:

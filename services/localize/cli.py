@@ -94,13 +94,6 @@ def scan_sigma_m(args) -> float:
     return 0.0 if mm == "auto" else float(mm) / 1000.0
 
 
-def _accuracy_words(record: dict) -> str:
-    mm = record["scan_sigma_mm"]
-    if mm is None:
-        return "the scan's registration error unknown (it does not say which points each station has, or has one)"
-    return f"the scan's stations disagree by {mm:.1f} mm (range noise {record['noise_mm']:.1f} mm)"
-
-
 def resolve_scan_sigma(args, scan=None, db_meta: dict | None = None, map_dir=None) -> None:
     """``--scan-sigma-mm auto`` (the default) into millimetres: what ``cristal build-db`` recorded in the database
     (``db_meta``) or ``cristal prebuild`` beside the map (``map_dir``), else measured from ``scan`` itself
@@ -302,7 +295,7 @@ def run_build_db(args) -> int:
     from services.cli import emit_summary, positions_picture, roi_polygon
     from services.features.xfeat import XFeatExtractor
     from services.io.scans import load_scan
-    from services.localize.scan_error import measure_scan
+    from services.localize.scan_error import describe, measure_scan
     from services.relocalize.database import DBConfig, build_database
     from services.relocalize.roi import RoiConfig, sample_positions
     from services.render.renderer import Renderer
@@ -323,7 +316,7 @@ def run_build_db(args) -> int:
                               "scan_sigma_mm": accuracy["scan_sigma_mm"]})
     db.save(args.out)
     print(f"database {args.out}: {db.meta['positions']} positions, {db.n_views} views, {db.meta['features']:,} features "
-          f"in {db.meta['build_seconds']} s; {_accuracy_words(accuracy)}")
+          f"in {db.meta['build_seconds']} s; {describe(accuracy)}")
     plural = "s" * (len(pos) != 1)
     picture = positions_picture(pos, args.out, scan=scan, label="database positions",
                                 title=f"relocalization database: {len(pos)} position{plural}, {args.spacing:g} m apart "

@@ -65,6 +65,14 @@ def measure_scan(scan) -> dict:
             "noise_mm": round(1e3 * a.noise_m, 2) if ok else None, "pairs": len(a.pairs) if a is not None else 0}
 
 
+def describe(record: dict) -> str:
+    """A :func:`measure_scan` record in words, for a build's summary line."""
+    mm = record["scan_sigma_mm"]
+    if mm is None:
+        return "the scan's registration error unknown (it does not say which points each station has, or has one)"
+    return f"the scan's stations disagree by {mm:.1f} mm (range noise {record['noise_mm']:.1f} mm)"
+
+
 def write_accuracy(map_dir, record: dict) -> None:
     """``record`` (:func:`measure_scan`) into ``map_dir/scan_accuracy.json``, atomically."""
     import json

@@ -77,7 +77,7 @@ def run_prebuild(args) -> int:
     from services.geometry.camera import Camera
     from services.io.scans import load_scan
     from services.prebuild.builder import BuildConfig, build_map
-    from services.localize.scan_error import measure_scan, write_accuracy
+    from services.localize.scan_error import describe, measure_scan, write_accuracy
     from services.prebuild.patches import PATCH_FILE
     from services.prebuild.stella_map import CONFIG_FILE, MAP_FILE, check_map_dict, map_to_dict, write_config, write_map
     from services.relocalize.roi import RoiConfig, sample_positions
@@ -128,8 +128,7 @@ def run_prebuild(args) -> int:
     total = time.perf_counter() - t0
     print(f"map {out}: {m.n_keyframes} keyframes, {m.n_landmarks:,} landmarks, {size / 1e6:.1f} MB, "
           f"built in {stats['build_s']:.1f} s ({total:.1f} s with loading); stella_vslam config {out / CONFIG_FILE}; "
-          + ("the scan's registration error unknown" if accuracy["scan_sigma_mm"] is None else
-             f"the scan's stations disagree by {accuracy['scan_sigma_mm']:.1f} mm"))
+          f"{describe(accuracy)}")
     picture = positions_picture(pos, out / MAP_FILE, landmarks=m.lm_pos, label="keyframe positions",
                                 title=f"map: {m.n_keyframes} keyframes at {len(pos)} positions, {m.n_landmarks:,} "
                                       f"landmarks (grey by height; top view)")
