@@ -112,9 +112,9 @@ def _stamp(scan_path, what: dict) -> dict:
     return {"scan": str(scan_path.resolve()), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns, **what}
 
 
-def build_or_load_db(renderer, scan, scan_path, out, spacing: float, regenerate: bool, scan_sigma_mm: float | None = None):
+def build_or_load_db(renderer, scan, scan_path, out, spacing: float, regenerate: bool, accuracy: dict | None = None):
     """The relocalization database in OUT/reloc.npz, as ``cristal build-db`` builds it (reused while it matches), with
-    the scan's registration error ``scan_sigma_mm`` in its meta."""
+    the scan's registration error (``accuracy``: :func:`services.localize.scan_error.measure_scan`) in its meta."""
     import json
 
     from services.features.xfeat import XFeatExtractor
@@ -134,7 +134,8 @@ def build_or_load_db(renderer, scan, scan_path, out, spacing: float, regenerate:
     log.info("[2/5] relocalization database: XFeat on cubemap renders at %d positions", len(pos))
     db = build_database(renderer, pos, XFeatExtractor(device=str(renderer.device)), cfg,
                         meta={"scan": str(scan_path), "scan_bytes": scan_path.stat().st_size, "spacing": spacing,
-                              "scan_sigma_mm": scan_sigma_mm})
+                              "scan_sigma_mm": (accuracy or {}).get("scan_sigma_mm"),
+                              "scan_grid": (accuracy or {}).get("grid")})
     db.save(path)
     atomic_write_text(stamp_path, json.dumps(stamp, indent=1) + "\n")
     return db, True
@@ -356,7 +357,7 @@ def run(args) -> int:
     import torch
 
     from services.io.scans import load_scan
-    from services.localize.scan_error import describe, measure_scan, write_accuracy
+    from services.localize.scan_error import describe, grid_arg, measure_scan, write_accuracy
     from services.render.renderer import Renderer
 
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))  # 1 unless -j: faster on a loaded 2-core box
@@ -364,8 +365,7 @@ def run(args) -> int:
         scan = load_scan(scan_path)
         renderer = Renderer(scan, device=args.device)
         accuracy = measure_scan(scan)  # how far the scan's stations disagree: counted in each reported 1-sigma
-        db, _ = build_or_load_db(renderer, scan, scan_path, out, args.db_spacing, args.regenerate,
-                                 accuracy["scan_sigma_mm"])
+        db, _ = build_or_load_db(renderer, scan, scan_path, out, args.db_spacing, args.regenerate, accuracy)
     with clock.step("pnl_map"):
         map_dir, _ = build_or_load_map(renderer, scan, scan_path, seq.camera, out, args.map_spacing, args.regenerate)
         if map_dir is not None:
@@ -393,7 +393,8 @@ def run(args) -> int:
             router = open_session(make_config(None, mode="router", listen=[endpoint], default_role="server"))
             stack.callback(router.close)
             server = LocalizationServer(RMBackend.from_loaded(scan, renderer, db,
-                                                              cfg=RMConfig(scan_sigma_m=scan_sigma_mm / 1000.0)),
+                                                              cfg=RMConfig(scan_sigma_m=scan_sigma_mm / 1000.0,
+                                                                           scan_grid=grid_arg(accuracy))),
                                         ServerConfig(server_id=SERVER_ID, idle_s=3600.0),
                                         make_config(None, connect=[endpoint], default_role="server"), bundle_dir=map_dir)
             server.start()

@@ -980,3 +980,16 @@ def test_the_scans_own_error_widens_the_reported_sigma_and_nothing_else(pnl_site
         floor_deg = np.sqrt(b.sigma_deg ** 2 - a.sigma_deg ** 2)
         # a room a few metres across: seen from 1-5 m
         assert scan_floor(0.008, 5.0)[1] < floor_deg < scan_floor(0.008, 1.0)[1], floor_deg
+
+    # where on the site the error lies, as prebuild records it beside the map: 2 mm wherever the scan has points
+    from services.io.scans import load_scan
+    from services.localize.scan_error import DisagreementGrid
+
+    scan = load_scan(pnl_site[0] / "scan.ply")
+    grid = DisagreementGrid.from_scan(scan, np.full(len(scan.stations), 0.002 / np.sqrt(2)), 0.008)
+    local = run(PnlConfig(scan_sigma_m=0.008, scan_grid=grid))
+    for a, c in zip(own, local, strict=True):
+        assert a.status == c.status and (a.T_wc is None) == (c.T_wc is None)
+        if a.T_wc is not None:
+            assert np.allclose(a.T_wc.matrix(), c.T_wc.matrix(), atol=1e-9)
+            assert np.sqrt(c.sigma_m ** 2 - a.sigma_m ** 2) == pytest.approx(0.004, rel=0.1)

@@ -44,6 +44,23 @@ def test_stations_registered_apart_are_measured_apart_and_agreeing_ones_agree():
     assert station_agreement(one) is None  # cannot tell: which points are whose is unknown
 
 
+def test_the_one_station_registered_off_is_told_from_the_ones_that_agree():
+    rng = np.random.default_rng(2)
+    offsets = [[0, 0, 0], [0, 0, 0], [0.006, 0.0, 0.0], [0, 0, 0]]  # the third registered 6 mm off along x
+    parts = [_room(rng, n=150_000) + np.asarray(o) for o in offsets]
+    xyz = np.concatenate(parts).astype(np.float32)
+    st = [Pose.from_rotvec_t([0, 0, 0], c) for c in ([1.5, 1, 1.5], [4.5, 1, 1.5], [1.5, 3, 1.5], [4.5, 3, 1.5])]
+    scan = Scan(xyz, np.full(xyz.shape, 128, np.uint8), np.zeros(3), st, meta={"station_points": [len(p) for p in parts]})
+    a = station_agreement(scan)
+    sig = a.station_sigmas_m()
+    # along the floor's, walls' and ceiling's normals in equal shares: 6 mm along x is an RMS of 6 / sqrt(3) mm
+    assert sig[2] == pytest.approx(0.006 / np.sqrt(3), rel=0.2), sig
+    assert np.delete(sig, 2).max() < 0.2 * sig[2], sig
+    # two stations alone cannot say whose error it is: they split it
+    two = station_agreement(_stations([0.004, 0, 0], rng)).station_sigmas_m()
+    assert two[0] == pytest.approx(two[1], rel=0.05) and np.hypot(*two) == pytest.approx(0.004 / np.sqrt(3), rel=0.2), two
+
+
 def test_which_points_each_station_has_survives_ply_and_ordered_subsets(tmp_path):
     scan = _stations([0.004, 0, 0], np.random.default_rng(1))
     n0 = scan.meta["station_points"][0]

@@ -1549,7 +1549,7 @@ def test_a_lost_stretch_verifies_a_place_again_on_the_render_it_made_for_the_fra
     assert not tr.verify_kfs  # a reported pose: the kept renders are let go
 
 
-def test_the_scans_own_error_widens_the_reported_sigma_and_nothing_else(rm_setup):
+def test_the_scans_own_error_widens_the_reported_sigma_and_nothing_else(rm_setup, small_site):
     """``--scan-sigma-mm``: a scan whose stations disagree by 8 mm places no camera better than that; each reported
     1-sigma counts it (services/localize/scan_error.py) while the poses, and which frames are reported, stay the same:
     the gates judge the frame's own uncertainty."""
@@ -1575,3 +1575,17 @@ def test_the_scans_own_error_widens_the_reported_sigma_and_nothing_else(rm_setup
         at_truth = scan_floor(0.008, float(np.median(true[true > 0])))
         assert floor_m == pytest.approx(0.016, rel=1e-6)
         assert 0.67 * at_truth[1] < floor_deg < 1.5 * at_truth[1], (floor_deg, at_truth)
+
+    # where on the site the error lies (a grid of the stations' disagreement): here 2 mm wherever the scan has points,
+    # so the camera's floor is 2 mm's, not the pooled 8
+    from services.io.scans import load_scan
+    from services.localize.scan_error import DisagreementGrid
+
+    scan = load_scan(small_site[0] / "scan.ply")
+    grid = DisagreementGrid.from_scan(scan, np.full(len(scan.stations), 0.002 / np.sqrt(2)), 0.008)
+    local = run(RMConfig(scan_sigma_m=0.008, scan_grid=grid))
+    for a, c in zip(own, local, strict=True):
+        assert a.status == c.status and (a.T_wc is None) == (c.T_wc is None)
+        if a.T_wc is not None:
+            assert np.allclose(a.T_wc.matrix(), c.T_wc.matrix(), atol=1e-9)
+            assert np.sqrt(c.sigma_m ** 2 - a.sigma_m ** 2) == pytest.approx(0.004, rel=0.1)

@@ -54,3 +54,69 @@ def test_auto_takes_what_build_db_or_prebuild_recorded_and_a_number_as_given(tmp
     assert read_accuracy_mm(tmp_path) == 6.5 and resolved("auto", map_dir=tmp_path) == pytest.approx(0.0065)
     (tmp_path / "scan_accuracy.json").write_text("{broken")
     assert read_accuracy_mm(tmp_path) is None and resolved("auto", map_dir=tmp_path) == 0.0
+
+
+def _two_rooms(sigma_m):
+    """Two rooms 7 m apart: stations 0 and 1 scan the first (half its points each), station 2 the second."""
+    import numpy as np
+
+    from services.geometry.se3 import Pose
+    from services.io.scan import Scan
+
+    rng = np.random.default_rng(0)
+
+    def room(x0, n):
+        p = rng.uniform([x0, 0, 0], [x0 + 6, 4, 3], (n, 3))
+        p[:, 2] = rng.choice([0.0, 3.0], n)  # floor and ceiling
+        return p
+
+    parts = [room(0, 40_000), room(0, 40_000), room(7, 40_000)]
+    xyz = np.concatenate(parts).astype(np.float32)
+    st = [Pose.from_rotvec_t([0, 0, 0], c) for c in ([2, 2, 1.5], [4, 2, 1.5], [10, 2, 1.5])]
+    return Scan(xyz, np.full(xyz.shape, 128, np.uint8), np.zeros(3), st, meta={"station_points": [len(p) for p in parts]})
+
+
+def test_the_scans_error_is_told_where_it_lies():
+    """A loose station's error is where its points are: the grid of the stations' disagreement (what build-db and
+    prebuild record) says so per place, and a camera looking elsewhere gets the error of what it sees."""
+    import numpy as np
+
+    from services.localize.scan_error import DisagreementGrid, grid_arg, local_scan_sigma
+
+    scan = _two_rooms(None)
+    grid = DisagreementGrid.from_scan(scan, np.array([0.010, 0.0, 0.0]), 0.012)
+    first, second = np.asarray(scan.xyz[:80_000], float), np.asarray(scan.xyz[80_000:], float)
+    # half the first room's points are the loose station's: sqrt(2 x (10² + 0²) / 2) = 10 mm; none of the second's
+    assert grid.at(first, 0.012) == pytest.approx(0.010, rel=0.05)
+    assert grid.at(second, 0.012) < 1e-6
+    assert grid.at(np.array([[50.0, 50.0, 50.0]]), 0.012) == 0.012  # no scan there: the pooled error
+    assert local_scan_sigma(0.012, None, second) == 0.012  # no grid: the pooled error everywhere
+    assert local_scan_sigma(0.012, grid, second) < 1e-6
+    back = grid_arg({"grid": grid.to_record()})
+    assert back.at(first, 0.012) == pytest.approx(grid.at(first, 0.012), abs=1e-6)
+    assert grid_arg({"grid": {"keys": [3, 1], "s_um": [1, 2]}}) is None and grid_arg({"stations": 3}) is None
+    # unknown station errors count as the pooled error's share
+    unknown = DisagreementGrid.from_scan(scan, np.array([np.nan, np.nan, np.nan]), 0.012)
+    assert unknown.at(second, 0.0) == pytest.approx(0.012, rel=1e-6)
+
+
+def test_auto_finds_where_the_error_lies_in_the_database_or_beside_the_map(tmp_path):
+    from argparse import Namespace
+
+    import numpy as np
+
+    from services.localize.cli import resolve_scan_sigma, scan_grid
+    from services.localize.scan_error import DisagreementGrid, read_accuracy, write_accuracy
+
+    rec = DisagreementGrid.from_scan(_two_rooms(None), np.array([0.010, 0.0, 0.0]), 0.012).to_record()
+    args = Namespace(scan_sigma_mm="auto")
+    resolve_scan_sigma(args, db_meta={"scan_sigma_mm": 12.0, "scan_grid": rec})
+    assert scan_grid(args) is not None and args.scan_sigma_mm == 12.0
+    args = Namespace(scan_sigma_mm=5.0)  # a number given: that number everywhere
+    resolve_scan_sigma(args, db_meta={"scan_sigma_mm": 12.0, "scan_grid": rec})
+    assert scan_grid(args) is None
+    write_accuracy(tmp_path, {"format_version": 2, "scan_sigma_mm": 12.0, "noise_mm": 1.0, "pairs": 2, "grid": rec})
+    assert read_accuracy(tmp_path)["grid"] == rec
+    args = Namespace(scan_sigma_mm="auto")
+    resolve_scan_sigma(args, map_dir=tmp_path)
+    assert scan_grid(args).at(np.array([[9.0, 2.0, 0.0]]), 1.0) < 1e-6

@@ -97,6 +97,32 @@ def test_sim_cli_and_view(tmp_path, capsys, small_site):
                  "--out", str(tmp_path / "x.png")]) == 2
 
 
+def test_a_loose_station_is_the_one_scan_check_names(tmp_path):
+    """``--scan-flaws loose``: a millimetre registration but for one station (the one nearest the stations' middle),
+    which ``cristal scan check`` names (services/io/registration.py) and the scan's record locates."""
+    from services.io.registration import station_agreement
+    from services.io.scans import load_scan
+    from services.localize.scan_error import grid_arg, measure_scan
+    from services.sim.lidar import loose_station
+    from services.sim.scenes import make_scene
+    from services.sim.site import config_for
+
+    cfg = config_for("office", seed=1, frames=2, width=160, height=120, lidar_step_deg=0.4, scan_flaws="loose")
+    generate_site(cfg, tmp_path / "s")
+    scan = load_scan(tmp_path / "s" / "scan.ply")
+    k = loose_station(make_scene("office", 1).stations)
+    a = station_agreement(scan)
+    own = a.station_sigmas_m()
+    assert a.loose_stations() == [k], own
+    record = measure_scan(scan)
+    assert record["loose_stations"] == [k]
+    grid = grid_arg(record)
+    near = np.asarray(scan.xyz[:], float)
+    d = np.linalg.norm(near - scan.stations[k].t, axis=1)
+    far = near[d > np.percentile(d, 90)]
+    assert grid.at(near[d < 1.5], 1.0) > 2 * grid.at(far, 1.0), (grid.at(near[d < 1.5], 1.0), grid.at(far, 1.0))
+
+
 def test_a_scan_with_a_real_registrations_flaws_has_them(tmp_path):
     """``--scan-flaws``: each station is registered a little off (its points moved rigidly with it, and the station
     pose written is the registered one), its panorama exposed apart, and returns on range edges float between the two

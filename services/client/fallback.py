@@ -103,14 +103,17 @@ def _takes(fn, name: str) -> bool:
 def load_local(map_dir: str | Path, scan_sigma_m: float | None = None) -> LocalFallback | None:
     """The P&L localizer for ``map_dir`` behind :class:`LocalFallback`; None (with a warning) if unavailable.
     ``scan_sigma_m``: the scan's registration error, counted in each reported 1-sigma (as the server's
-    ``--scan-sigma-mm``); None: what prebuild recorded beside the map (0 if nothing)."""
+    ``--scan-sigma-mm``); None: what prebuild recorded beside the map (0 if nothing), and where on the site it lies."""
     try:
         from services.localize.pnl import PnlConfig, PnlLocalizer
     except ImportError as e:
         log.warning("the local P&L localizer is not available (%s): frames the server misses get no pose", e)
         return None
-    if scan_sigma_m is None:
-        from services.localize.scan_error import read_accuracy_mm
+    grid = None
+    if scan_sigma_m is None:  # what prebuild measured: the scan's error, and each station's (where the camera looks)
+        from services.localize.scan_error import grid_arg, read_accuracy
 
-        scan_sigma_m = (read_accuracy_mm(map_dir) or 0.0) / 1000.0
-    return LocalFallback(PnlLocalizer.load(Path(map_dir), PnlConfig(scan_sigma_m=scan_sigma_m)))
+        record = read_accuracy(map_dir)
+        scan_sigma_m = 0.0 if record is None else record["scan_sigma_mm"] / 1000.0
+        grid = grid_arg(record) if scan_sigma_m else None
+    return LocalFallback(PnlLocalizer.load(Path(map_dir), PnlConfig(scan_sigma_m=scan_sigma_m, scan_grid=grid)))

@@ -217,7 +217,8 @@ def plot_positions_topdown(positions: np.ndarray, out_png: str | Path, scan: "Sc
 
 def plot_station_agreement(agreement, scan: "Scan", out_png: str | Path, max_points: int = 200_000) -> Path:
     """``cristal scan check --plot``: the stations seen from above over the scan, each pair that shares surfaces
-    joined by a line coloured by how far they disagree (services.io.registration; the worse direction of the two)."""
+    joined by a line coloured by how far they disagree (services.io.registration; the worse direction of the two),
+    each station labelled with its own share (mm), the loose ones ringed."""
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
@@ -238,8 +239,15 @@ def plot_station_agreement(agreement, scan: "Scan", out_png: str | Path, max_poi
         ax.annotate(f"{mm:.1f}", C[[a, b], :2].mean(axis=0), fontsize=7, ha="center", va="center", zorder=4,
                     bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
     ax.plot(C[:, 0], C[:, 1], "o", color=EST_COLOR, ms=6, ls="none", zorder=3, label=f"stations ({len(C)})")
+    own = 1e3 * agreement.station_sigmas_m()
+    loose = agreement.loose_stations()
+    if loose:
+        ax.plot(C[loose, 0], C[loose, 1], "o", mfc="none", mec="red", mew=2, ms=14, ls="none", zorder=3,
+                label="loose: off its neighbours well beyond the rest")
     for k, c in enumerate(C):
-        ax.annotate(str(k), c[:2], xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=4)
+        label = str(k) if not np.isfinite(own[k]) else f"{k}: {own[k]:.1f}"
+        ax.annotate(label, c[:2], xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=4,
+                    color="red" if k in loose else "black")
     fig.colorbar(ScalarMappable(norm, cmap), ax=ax, shrink=0.7, label="registration error between the two (mm)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")

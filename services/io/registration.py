@@ -64,6 +64,42 @@ class StationAgreement:
         """The range noise, pooled the same way."""
         return self._pooled(lambda p: p.own_m)
 
+    def station_sigmas_m(self, prior_weight: float = 0.001) -> np.ndarray:
+        """Each station's own registration error (m; NaN for a station that shares no surface): a pair's
+        disagreement is both stations' errors, ``registration² = s_a² + s_b²``, solved over all pairs by least squares
+        weighted by their shared points (non-negative). A station's error is told from its neighbours' only where it
+        has two or more that do not share one another's error; ``prior_weight`` (relative to a pair's mean weight)
+        draws each towards half the pooled pair (what they are when all are alike: two stations alone split it)."""
+        from scipy.optimize import lsq_linear
+
+        out = np.full(self.stations, np.nan)
+        if not self.pairs:
+            return out
+        seen = sorted({p.a for p in self.pairs} | {p.b for p in self.pairs})
+        col = {s: k for k, s in enumerate(seen)}
+        n = np.array([p.n for p in self.pairs], float)
+        w = np.sqrt(n / n.mean())
+        A = np.zeros((len(self.pairs) + len(seen), len(seen)))
+        b = np.zeros(len(A))
+        for r, p in enumerate(self.pairs):
+            A[r, col[p.a]] = A[r, col[p.b]] = w[r]
+            b[r] = w[r] * (1e3 * p.registration_m) ** 2  # (mm²: the solver's tolerances are absolute)
+        lam = math.sqrt(prior_weight)
+        A[len(self.pairs):] = lam * np.eye(len(seen))
+        b[len(self.pairs):] = lam * 0.5 * (1e3 * self.registration_m) ** 2
+        x = lsq_linear(A, b, bounds=(0.0, np.inf)).x
+        out[seen] = 1e-3 * np.sqrt(x)
+        return out
+
+    def loose_stations(self, factor: float = 3.0, min_m: float = 0.002) -> list[int]:
+        """The stations whose own error (:meth:`station_sigmas_m`) is ``factor`` times the stations' median and at least
+        ``min_m``: a setup the registration held weakly (few targets, a corridor). Needs three stations that share."""
+        s = self.station_sigmas_m()
+        ok = np.isfinite(s)
+        if ok.sum() < 3:
+            return []
+        return [int(k) for k in np.flatnonzero(ok & (s >= max(factor * float(np.median(s[ok])), min_m)))]
+
 
 def _plane_distances(tree, pts: np.ndarray, k: int, radius_m: float, skip_self: bool) -> np.ndarray:
     """Distance of each of ``pts`` to the plane through its ``k`` nearest tree points within ``radius_m`` (NaN where

@@ -69,7 +69,7 @@ def add_gate_arguments(p: argparse.ArgumentParser) -> None:
 def rm_gates(args) -> dict:
     """RMConfig's fields for the gates of :func:`add_gate_arguments`."""
     return dict(max_sigma_deg=args.max_sigma_deg, max_sigma_m=args.max_sigma_cm / 100,
-                reloc_min_agreement=args.min_agreement, scan_sigma_m=scan_sigma_m(args))
+                reloc_min_agreement=args.min_agreement, scan_sigma_m=scan_sigma_m(args), scan_grid=scan_grid(args))
 
 
 def scan_sigma_arg(text: str) -> float | str:
@@ -94,25 +94,34 @@ def scan_sigma_m(args) -> float:
     return 0.0 if mm == "auto" else float(mm) / 1000.0
 
 
+def scan_grid(args):
+    """Where on the site the scan's error lies (a :class:`services.localize.scan_error.DisagreementGrid`), as
+    :func:`resolve_scan_sigma` found it (``auto`` only; else None)."""
+    return getattr(args, "scan_grid", None)
+
+
 def resolve_scan_sigma(args, scan=None, db_meta: dict | None = None, map_dir=None) -> None:
-    """``--scan-sigma-mm auto`` (the default) into millimetres: what ``cristal build-db`` recorded in the database
-    (``db_meta``) or ``cristal prebuild`` beside the map (``map_dir``), else measured from ``scan`` itself
-    (:func:`services.localize.scan_error.measure_scan`), else 0 (a scan that cannot tell: one station, or a file
-    that does not say which points each station has)."""
+    """``--scan-sigma-mm auto`` (the default) into millimetres, and where on the site it lies into ``args.scan_grid``
+    (each pose counts it where its camera looks, :func:`services.localize.scan_error.local_scan_sigma`): what
+    ``cristal build-db`` recorded in the database (``db_meta``) or ``cristal prebuild`` beside the map (``map_dir``),
+    else measured from ``scan`` itself (:func:`services.localize.scan_error.measure_scan`), else 0 (a scan that cannot
+    tell: one station, or a file that does not say which points each station has). A number given keeps to itself."""
     if getattr(args, "scan_sigma_mm", None) != "auto":
         return
-    from services.localize.scan_error import measure_scan, read_accuracy_mm
+    from services.localize.scan_error import grid_arg, measure_scan, read_accuracy
 
-    mm, source = None, None
+    mm, source, record = None, None, None
     if db_meta is not None and db_meta.get("scan_sigma_mm") is not None:
-        mm, source = float(db_meta["scan_sigma_mm"]), "the database"
-    elif map_dir is not None and (mm := read_accuracy_mm(map_dir)) is not None:
-        source = "the map"
+        mm, source, record = float(db_meta["scan_sigma_mm"]), "the database", {"grid": db_meta.get("scan_grid")}
+    elif map_dir is not None and (record := read_accuracy(map_dir)) is not None:
+        mm, source = record["scan_sigma_mm"], "the map"
     elif scan is not None and db_meta is not None and "scan_sigma_mm" in db_meta:
         source = "the database (unknown)"  # build-db measured this scan and could not tell: no need to again
     elif scan is not None:
-        mm, source = measure_scan(scan)["scan_sigma_mm"], "the scan"
+        record = measure_scan(scan)
+        mm, source = record["scan_sigma_mm"], "the scan"
     args.scan_sigma_mm = mm or 0.0
+    args.scan_grid = grid_arg(record) if mm else None
     if mm is None:
         log.info("--scan-sigma-mm auto: the scan's registration error is unknown (%s); each 1-sigma is the frame's own",
                  source or "nothing recorded it")
@@ -313,7 +322,7 @@ def run_build_db(args) -> int:
     accuracy = measure_scan(scan)  # the scan's own error, for --scan-sigma-mm auto where the scan is not measured
     db = build_database(renderer, pos, ext, DBConfig(face_size=args.face_size, faces=args.faces),
                         meta={"scan": str(src), "scan_bytes": src.stat().st_size, "spacing": args.spacing,
-                              "scan_sigma_mm": accuracy["scan_sigma_mm"]})
+                              "scan_sigma_mm": accuracy["scan_sigma_mm"], "scan_grid": accuracy["grid"]})
     db.save(args.out)
     print(f"database {args.out}: {db.meta['positions']} positions, {db.n_views} views, {db.meta['features']:,} features "
           f"in {db.meta['build_seconds']} s; {describe(accuracy)}")

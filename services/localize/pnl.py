@@ -77,7 +77,7 @@ from services.kernels import optional_kernels
 from services.localize.carry import OdometryCarry
 from services.localize.innovation import within_motion
 from services.localize.odometry_check import OdometryCheck
-from services.localize.scan_error import median_depth, with_scan_error
+from services.localize.scan_error import local_scan_sigma, median_depth, with_scan_error
 from services.localize.status import Status
 from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas, pose_covariance, solve_motion_only,
                                      undistorted_gray)
@@ -106,6 +106,7 @@ class PnlConfig:
     kp_max_sigma_deg: float = 0.3  # saved by stella_vslam): ORB corners cannot do better than ~1.5 cm / 0.2 deg here
     sigma_ref_px_deg: float = 0.12  # ... for cameras whose pixels subtend up to this (VGA); coarser ones scale both
     scan_sigma_m: float = 0.0  # the scan's registration error (1-sigma), counted in the reported 1-sigma (scan_error.py)
+    scan_grid: object = None  # ... and where on the site it lies (scan_error.DisagreementGrid): the error where it looks
     coarse_radius_px: float = 16.0  # window around the predicted projection (x scale^octave, capped by the grid)
     fine_radius_px: float = 4.0  # window after the first pose estimate
     max_hamming: int = 80
@@ -391,7 +392,7 @@ class PnlLocalizer:
         self.cfg = cfg
         t0 = time.perf_counter()
         self.idx = _MapIndex(stella_map)
-        self._kf_depth: dict[int, float] = {}  # keyframe row -> median landmark depth (_view_depth)
+        self._kf_floor: dict[int, tuple[float, float]] = {}  # keyframe row -> (local scan error, median depth): _view_floor
         self.patches = patches
         self._patch_of_row = np.full(len(self.idx.pos), -1, np.int64)  # landmark row -> patch index
         if patches is not None:
@@ -1228,21 +1229,24 @@ class PnlLocalizer:
                              if not self._good(r, fr) else NOT_UNDONE)
         self.T_last, self._near, self._unsure = T_wc, None, 0
         if self.cfg.scan_sigma_m:
-            sig_m, sig_deg = with_scan_error(sig_m, sig_deg, self.cfg.scan_sigma_m, self._view_depth(T_wc))
+            sig_m, sig_deg = with_scan_error(sig_m, sig_deg, *self._view_floor(T_wc))
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
 
-    def _view_depth(self, T_wc: Pose) -> float:
-        """The median depth of the landmarks of the map's keyframe nearest ``T_wc`` among those looking its way."""
+    def _view_floor(self, T_wc: Pose) -> tuple[float, float]:
+        """(the stations' disagreement where its landmarks lie, their median depth) for the map's keyframe nearest
+        ``T_wc`` among those looking its way: what :func:`with_scan_error` takes."""
         idx = self.idx
         if not len(idx.kf_center):
-            return float("nan")
+            return self.cfg.scan_sigma_m, float("nan")
         d = np.linalg.norm(idx.kf_center - T_wc.t, axis=1)
         d[idx.kf_axis @ T_wc.R[:, 2] < 0.7] += 1e3  # (any keyframe when none looks its way)
         k = int(np.argmin(d))
-        if k not in self._kf_depth:
+        if k not in self._kf_floor:
             kf = self.idx.map.keyframes[int(idx.kf_ids[k])].T_wc
-            self._kf_depth[k] = median_depth((idx.pos[idx.kf_lms[k]] - kf.t) @ kf.R)
-        return self._kf_depth[k]
+            P = idx.pos[idx.kf_lms[k]]
+            self._kf_floor[k] = (local_scan_sigma(self.cfg.scan_sigma_m, self.cfg.scan_grid, P),
+                                 median_depth((P - kf.t) @ kf.R))
+        return self._kf_floor[k]
 
     def _confirm(self, fr: _Frame, T_wc: Pose) -> str | None:
         """Whether a tracked pose ``T_wc`` after a run of poses too uncertain to report (``_unsure``) agrees with a

@@ -13,7 +13,7 @@ def pnl_config(args):
     """The localizer's settings from ``cristal localize``'s arguments. The report gates are Render & Match's
     (--max-sigma-cm / --max-sigma-deg); a keypoint-only pose's looser gates (a map without patches) move by the same
     ratio."""
-    from services.localize.cli import scan_sigma_m
+    from services.localize.cli import scan_grid, scan_sigma_m
     from services.localize.pnl import PnlConfig
 
     d = PnlConfig()
@@ -25,7 +25,7 @@ def pnl_config(args):
                      max_sigma_m=gate_m, max_sigma_deg=gate_deg,
                      kp_max_sigma_m=d.kp_max_sigma_m * gate_m / d.max_sigma_m,
                      kp_max_sigma_deg=d.kp_max_sigma_deg * gate_deg / d.max_sigma_deg,
-                     scan_sigma_m=scan_sigma_m(args))
+                     scan_sigma_m=scan_sigma_m(args), scan_grid=scan_grid(args))
 
 
 def run_localize_pnl(args) -> int:

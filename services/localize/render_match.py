@@ -75,7 +75,7 @@ from services.localize.carry import OdometryCarry
 from services.localize.innovation import within_motion
 from services.localize.direct import DirectConfig, align_and_solve, undistorted_gray
 from services.localize.odometry_check import OdometryCheck
-from services.localize.scan_error import with_scan_error
+from services.localize.scan_error import local_scan_sigma, with_scan_error
 from services.localize.status import Status
 from services.prebuild.patches import LandmarkPatches, corner_scores, sample_patches
 from services.relocalize.ambiguity import FAR_M
@@ -98,6 +98,7 @@ class RMConfig:
     max_sigma_deg: float = 0.1  # ... and orientation: a pose less certain than the accuracy we promise is LOST ...
     sigma_ref_px_deg: float = 0.12  # ... for cameras whose pixels subtend up to this (VGA, 65 deg wide); coarser ones scale both
     scan_sigma_m: float = 0.0  # the scan's registration error (1-sigma), counted in the reported 1-sigma (scan_error.py)
+    scan_grid: object = None  # ... and where on the site it lies (scan_error.DisagreementGrid): the error where it looks
     ransac_px: float = 2.0  # RANSAC inlier threshold
     match_cos: float = 0.82  # mutual-NN cosine threshold (XFeat's default)
     rerender_m: float = 0.15  # re-render when the pose is this far from the keyframe ...
@@ -260,7 +261,8 @@ class Keyframe:
     direct: tuple | None = None  # (LandmarkPatches, world points, render pixels): corner patches, for direct tracking
     direct_blurred: LandmarkPatches | None = None  # the same corners' patches cut from the blurred render
     scene_points: np.ndarray | None = None  # world points of the render's measured depth (RenderMatchTracker._scene_depth)
-    depth_m: float | None = None  # median measured depth of the render (the scan's error in the reported 1-sigma)
+    depth_m: float | None = None  # median measured depth of the render (the scan's error in the reported 1-sigma) ...
+    scan_sigma_m: float | None = None  # ... and the stations' disagreement where it looks (scan_error.local_scan_sigma)
 
 
 @dataclass
@@ -1459,16 +1461,21 @@ class RenderMatchTracker:
         if not good:
             reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg 1-sigma)"
                       if not self._good(r) else NOT_UNDONE if not rs_settled else "pose away from where the motion leads")
-        sigma_m, sigma_deg = with_scan_error(r.sigma_t_m, r.sigma_r_deg, self.cfg.scan_sigma_m, self._view_depth())
+        sigma_m, sigma_deg = with_scan_error(r.sigma_t_m, r.sigma_r_deg, *self._view_floor())
         return FrameResult(status if good else Status.LOST, r.T_wc if good else None, r.n_inliers, r.reproj_rmse_px,
                            rerendered, fr.tm, sigma_m, sigma_deg, self._blur_px(fr, self._exposure(fr)), reason)
 
-    def _view_depth(self) -> float:
-        """The median measured depth of the keyframe the last pose was found against (NaN without one)."""
+    def _view_floor(self) -> tuple[float, float]:
+        """(the stations' disagreement where the camera looks, the median measured depth) of the keyframe the last pose
+        was found against, for :func:`with_scan_error` ((scan_sigma_m, NaN) without one)."""
         kf = self.kf
         if kf is None or not self.cfg.scan_sigma_m:
-            return float("nan")
+            return self.cfg.scan_sigma_m, float("nan")
         if kf.depth_m is None:
-            d = kf.render.depth[kf.render.depth > 0]
-            kf.depth_m = float(np.median(d)) if d.size else float("nan")
-        return kf.depth_m
+            r = kf.render
+            v, u = np.nonzero(r.depth > 0)
+            kf.depth_m = float(np.median(r.depth[v, u])) if len(v) else float("nan")
+            pick = slice(None, None, max(1, len(v) // 400))
+            X, _ = r.backproject(np.column_stack([u[pick], v[pick]]).astype(np.float64))
+            kf.scan_sigma_m = local_scan_sigma(self.cfg.scan_sigma_m, self.cfg.scan_grid, X)
+        return kf.scan_sigma_m, kf.depth_m

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from services.sim.lidar import FLAWS
+
 SIM_EPILOG = """\
 examples:
   cristal sim --preset office --seed 1 --out site/            the default: ~4 M points, one 300-frame 640x480 walk
@@ -50,11 +52,12 @@ def register(sub) -> None:
                         "shutter); stamps and ground truth are the middle row's")
     p.add_argument("--lidar-step", type=float, dest="lidar_step_deg",
                    help="scanner angular step in degrees (office 0.2, warehouse 0.4); halving it quadruples the points")
-    p.add_argument("--scan-flaws", choices=["none", "survey", "registration", "poor"], default="none",
+    p.add_argument("--scan-flaws", choices=list(FLAWS), default="none",
                    help="what a real registered scan gets wrong: each station registered a little off, its panorama "
                         "exposed and white-balanced apart, mixed pixels floating along silhouettes. survey: 3 mm / "
                         "0.01 deg, 10 %% exposure, 30 %% of edge returns mixed; registration: the survey's registration "
-                        "alone; poor: 1 cm / 0.03 deg, 30 %%, all (default: none, a perfect scan)")
+                        "alone; poor: 1 cm / 0.03 deg, 30 %%, all; loose: 1 mm / 0.003 deg but one station (the one "
+                        "nearest the stations' middle) 1 cm / 0.03 deg off (default: none, a perfect scan)")
     p.set_defaults(func=run_sim)
 
     v = sub.add_parser("sim-view", help="ground-truth render (RGB + depth) of a simulated site from any pose",

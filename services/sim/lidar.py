@@ -22,7 +22,7 @@ from services.sim.materials import linear_to_srgb
 from services.sim.scenes import Lighting
 from services.sim.shading import SceneRenderer
 
-__all__ = ["LidarConfig", "ScanFlaws", "FLAWS", "simulate_station", "scan_exposure", "misregister"]
+__all__ = ["LidarConfig", "ScanFlaws", "FLAWS", "simulate_station", "scan_exposure", "misregister", "loose_station"]
 
 log = logging.getLogger(__name__)
 
@@ -50,10 +50,17 @@ class ScanFlaws:
     tint: float = 0.0  # ... and white balance error (log gain per channel)
     mixed_pixels: float = 0.0  # share of the returns on a range edge that come back from between the two surfaces
     edge_m: float = 0.05  # a range edge: a neighbouring ray's range differs by more than this
+    loose_m: float = 0.0  # one station (the one nearest the stations' middle) registered this far off instead ...
+    loose_deg: float = 0.0  # ... and turned this much: a setup the registration held weakly (few targets, a corridor)
 
     @property
     def any(self) -> bool:
-        return any((self.registration_m, self.registration_deg, self.gain, self.tint, self.mixed_pixels))
+        return any((self.registration_m, self.registration_deg, self.gain, self.tint, self.mixed_pixels, self.loose_m,
+                    self.loose_deg))
+
+    @property
+    def misregistered(self) -> bool:
+        return any((self.registration_m, self.registration_deg, self.loose_m, self.loose_deg))
 
 
 FLAWS = {  # ``cristal sim --scan-flaws NAME``
@@ -64,7 +71,15 @@ FLAWS = {  # ``cristal sim --scan-flaws NAME``
     "registration": ScanFlaws(registration_m=0.003, registration_deg=0.01),
     # a hurried one: centimetre registration, panoramas visibly apart, no mixed-pixel filter
     "poor": ScanFlaws(registration_m=0.01, registration_deg=0.03, gain=0.3, tint=0.08, mixed_pixels=1.0),
+    # a millimetre registration but for one loose setup, 1 cm / 0.03 deg off: where on the site the scan's error lies
+    "loose": ScanFlaws(registration_m=0.001, registration_deg=0.003, loose_m=0.01, loose_deg=0.03),
 }
+
+
+def loose_station(centres: np.ndarray) -> int:
+    """The station ``ScanFlaws.loose_m`` moves: the one nearest the stations' middle (a setup most others lean on)."""
+    c = np.asarray(centres, float).reshape(-1, 3)
+    return int(np.argmin(np.linalg.norm(c - c.mean(axis=0), axis=1)))
 
 
 def station_directions(cfg: LidarConfig) -> np.ndarray:
@@ -111,12 +126,14 @@ def _mixed_ranges(t: np.ndarray, shape: tuple[int, int], flaws: ScanFlaws, rng: 
     return out.reshape(-1)
 
 
-def misregister(xyz: np.ndarray, centre: np.ndarray, flaws: ScanFlaws, rng: np.random.Generator):
-    """One station's points placed by a registration ``flaws`` off: (xyz, the station's registered rotation, centre)."""
+def misregister(xyz: np.ndarray, centre: np.ndarray, flaws: ScanFlaws, rng: np.random.Generator, loose: bool = False):
+    """One station's points placed by a registration ``flaws`` off: (xyz, the station's registered rotation, centre).
+    ``loose``: the station is the loose one (``flaws.loose_m``, ``flaws.loose_deg``)."""
     from services.geometry.se3 import rotvec_to_rotmat
 
-    R = rotvec_to_rotmat(np.deg2rad(rng.normal(0.0, flaws.registration_deg, 3)))
-    c = centre + rng.normal(0.0, flaws.registration_m, 3)
+    sigma_deg, sigma_m = (flaws.loose_deg, flaws.loose_m) if loose else (flaws.registration_deg, flaws.registration_m)
+    R = rotvec_to_rotmat(np.deg2rad(rng.normal(0.0, sigma_deg, 3)))
+    c = centre + rng.normal(0.0, sigma_m, 3)
     return (xyz - centre) @ R.T + c, R, c
 
 

@@ -27,7 +27,7 @@ from services.io.atomic import atomic_write_text
 from services.io.scan import Scan
 from services.io.sequence import SequenceWriter
 from services.log import progress
-from services.sim.lidar import FLAWS, LidarConfig, ScanFlaws, misregister, scan_exposure, simulate_station
+from services.sim.lidar import FLAWS, LidarConfig, ScanFlaws, loose_station, misregister, scan_exposure, simulate_station
 from services.sim.materials import linear_to_srgb
 from services.sim.mesh import Mesh
 from services.sim.scenes import Lighting, Scene, make_scene
@@ -84,13 +84,14 @@ def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
     exposure = scan_exposure(renderer, scene.stations, scene.scan_lighting, cfg.seed)
     rng = np.random.default_rng([cfg.seed, 1])
     xyz_parts, rgb_parts, stations = [], [], []
+    loose = loose_station(scene.stations) if (cfg.flaws.loose_m or cfg.flaws.loose_deg) else -1
     for k, c in enumerate(progress(scene.stations, desc="LiDAR stations", total=len(scene.stations), unit="station")):
         frng = np.random.default_rng([cfg.seed, 3, k]) if cfg.flaws.any else None  # (a perfect scan draws as before)
         xyz, rgb = simulate_station(renderer, c, scene.scan_lighting, exposure, cfg.lidar, rng,
                                     cfg.flaws if cfg.flaws.any else None, frng)
         R, centre = np.eye(3), c
-        if cfg.flaws.registration_m or cfg.flaws.registration_deg:
-            xyz, R, centre = misregister(xyz, c, cfg.flaws, frng)
+        if cfg.flaws.misregistered:
+            xyz, R, centre = misregister(xyz, c, cfg.flaws, frng, loose=k == loose)
         xyz_parts.append(xyz)
         rgb_parts.append(rgb)
         stations.append(Pose(R, centre))  # where the registration put the station
