@@ -8,6 +8,7 @@ import pytest
 
 from services.localize.render_match import RMConfig, RenderMatchTracker, Status
 from _pictures import red_pixels
+from _scan_floor import added_m, reported_alike, uniform_grid
 
 
 @pytest.fixture(scope="module")
@@ -1564,28 +1565,15 @@ def test_the_scans_own_error_widens_the_reported_sigma_and_nothing_else(rm_setup
 
     own, widened = run(RMConfig()), run(RMConfig(scan_sigma_m=0.008))
     assert sum(r.T_wc is not None for r in own) >= 4
-    for i, (a, b) in enumerate(zip(own, widened, strict=True)):
-        assert a.status == b.status and (a.T_wc is None) == (b.T_wc is None)
-        if a.T_wc is None:
-            continue
-        assert np.allclose(a.T_wc.matrix(), b.T_wc.matrix(), atol=1e-9)
-        floor_m, floor_deg = np.sqrt(b.sigma_m ** 2 - a.sigma_m ** 2), np.sqrt(b.sigma_deg ** 2 - a.sigma_deg ** 2)
+    for i, a, b in reported_alike(own, widened):
+        floor_deg = np.sqrt(b.sigma_deg ** 2 - a.sigma_deg ** 2)
         # the floor at the distance the camera truly sees (the true pose's render): its keyframe's depth is near it
         true = renderer.render(seq.groundtruth.poses[i], seq.camera, stage="filter").depth
         at_truth = scan_floor(0.008, float(np.median(true[true > 0])))
-        assert floor_m == pytest.approx(0.016, rel=1e-6)
+        assert added_m(a, b) == pytest.approx(0.016, rel=1e-6)
         assert 0.67 * at_truth[1] < floor_deg < 1.5 * at_truth[1], (floor_deg, at_truth)
-
     # where on the site the error lies (a grid of the stations' disagreement): here 2 mm wherever the scan has points,
     # so the camera's floor is 2 mm's, not the pooled 8
-    from services.io.scans import load_scan
-    from services.localize.scan_error import DisagreementGrid
-
-    scan = load_scan(small_site[0] / "scan.ply")
-    grid = DisagreementGrid.from_scan(scan, np.full(len(scan.stations), 0.002 / np.sqrt(2)), 0.008)
-    local = run(RMConfig(scan_sigma_m=0.008, scan_grid=grid))
-    for a, c in zip(own, local, strict=True):
-        assert a.status == c.status and (a.T_wc is None) == (c.T_wc is None)
-        if a.T_wc is not None:
-            assert np.allclose(a.T_wc.matrix(), c.T_wc.matrix(), atol=1e-9)
-            assert np.sqrt(c.sigma_m ** 2 - a.sigma_m ** 2) == pytest.approx(0.004, rel=0.1)
+    local = run(RMConfig(scan_sigma_m=0.008, scan_grid=uniform_grid(small_site[0] / "scan.ply", 0.002)))
+    for _, a, c in reported_alike(own, local):
+        assert added_m(a, c) == pytest.approx(0.004, rel=0.1)
