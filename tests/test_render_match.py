@@ -207,7 +207,7 @@ def test_direct_tracking_takes_weaker_corners_when_a_strong_one_outshines_the_re
     seq = open_sequence(out / "seq")
     counts = {}
     for quality in ((0.005,), RMConfig().direct_corner_quality):
-        tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(direct_corner_quality=quality))
+        tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(direct_corner_quality=quality, direct_edge_corner=0))
         kf = tr._keyframe(seq.groundtruth.poses[0], _Frame(seq.read(0).image, cam, {}, None, 0.0, None))
         plain = len(tr._direct_patches(kf)[0].lm_ids)
         img = (128 + 0.4 * (kf.render.rgb.astype(np.float32) - 128)).astype(np.uint8)  # a dull close-up ...
@@ -219,6 +219,28 @@ def test_direct_tracking_takes_weaker_corners_when_a_strong_one_outshines_the_re
     need = RMConfig().direct_min_inliers
     assert plain == plain_default >= need  # a render with enough strong corners: the same patches either way
     assert strict < need <= default, counts  # outshone: too few for direct tracking, unless weaker corners are taken
+
+
+def test_direct_tracking_takes_edge_like_patches_only_when_corners_are_too_few(rm_setup, site_480):
+    """A plain wall has few corner-like patches but edges; the alignment weighs each patch by its gradients, so an
+    edge still says where it lies across itself. Edge-like patches are the last level, taken only where the corner-like
+    ones are too few for direct tracking (on every render they cost accuracy: benchmarks/RESULTS.md stop 63)."""
+    from services.io.sequence import open_sequence
+    from services.localize.render_match import _Frame
+
+    renderer, ext, _, _, _ = rm_setup
+    _, out, cam, _ = site_480
+    seq = open_sequence(out / "seq")
+    need = RMConfig().direct_min_inliers
+
+    def patches(**cfg) -> int:
+        tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(**cfg))
+        kf = tr._keyframe(seq.groundtruth.poses[0], _Frame(seq.read(0).image, cam, {}, None, 0.0, None))
+        return len(tr._direct_patches(kf)[0].lm_ids)
+
+    assert patches() == patches(direct_edge_corner=0) >= need  # corners enough: the edges are not taken
+    few = patches(direct_min_corner=0.45, direct_edge_corner=0)  # a picture with few corner-like patches ...
+    assert few < need <= patches(direct_min_corner=0.45), few  # ... is tracked with its edges too
 
 
 def test_localize_cli_takes_the_device_s_odometry(rm_setup, small_site, tmp_path, capsys):

@@ -237,6 +237,13 @@ class RMConfig:
     direct_corner_quality: tuple[float, ...] = (0.005, 0.002)  # corner strength, relative to the render's strongest, for
     #                                     those patches; the next only when the first leaves fewer than direct_min_inliers
     #                                     (a close-up render: a few strong label edges outshine the rest)
+    direct_edge_corner: float = 0.1  # and when both leave too few, patches down to this corner score: edges count too
+    #                                  (the alignment weighs each by its gradients, so an edge still fixes where it lies
+    #                                  across itself). Only then: on every render they cost office frames 0.033 -> 0.042
+    #                                  deg and put a warehouse pose 4.1 cm off at 0.7 cm 1-sigma (benchmarks/RESULTS.md
+    #                                  stop 63); as a last level, the 0.3-deg scan's plain walls 250 -> 257 frames,
+    #                                  0.119 -> 0.112 deg, seeds 2 / 8 +4 / -1 frames (seed 8's worst pose 3.9 -> 1.9
+    #                                  cm), five more walks the same to the frame. 0 = off
     blur_probe_px: tuple[float, ...] = (0, 4, 8, 12, 16, 24, 32, 48)  # blur lengths (px at 640 wide) tried on the render
     #                                     at a relocalized pose to read the frame's blur from the image; () = off
     blur_probe_gain: float = 0.05  # ... the best length counts when it removes this share of the sharp render's misfit
@@ -729,7 +736,10 @@ class RenderMatchTracker:
             gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
             h, w = gray.shape
             m = 12 * w / 640  # a patch's margin from the image border
-            for quality in self.cfg.direct_corner_quality:  # weaker corners only where the strong ones cannot do
+            levels = [(q, self.cfg.direct_min_corner) for q in self.cfg.direct_corner_quality]
+            if self.cfg.direct_edge_corner > 0:
+                levels.append((self.cfg.direct_corner_quality[-1], self.cfg.direct_edge_corner))
+            for quality, min_corner in levels:  # weaker corners, then edges, only where the stronger ones cannot do
                 c = cv2.goodFeaturesToTrack(gray, maxCorners=8 * self.cfg.direct_points, qualityLevel=quality,
                                             minDistance=max(3.0, w / 80), blockSize=5)
                 uv = np.zeros((0, 2)) if c is None else c.reshape(-1, 2).astype(np.float64)
@@ -737,12 +747,12 @@ class RenderMatchTracker:
                 X, ok, planes = r.surface_points(uv, self.cfg.depth_radius, self.cfg.depth_max_residual)
                 uv, X, planes = uv[ok], X[ok], planes[ok]
                 patches = np.clip(sample_patches(gray, uv, 23) + 0.5, 0, 255).astype(np.uint8)
-                keep = np.flatnonzero(corner_scores(patches) >= self.cfg.direct_min_corner)
+                keep = np.flatnonzero(corner_scores(patches) >= min_corner)
                 gap = max(1.5, self.cfg.direct_hole_px * w / 480)  # (a 1-px gap between points is no hole)
                 real = keep[~invented_near(r.measured, uv[keep], max(4, 8 * w // 480), gap)]
                 keep = (real if len(real) >= self.cfg.direct_min_inliers else keep)[: self.cfg.direct_points]
-                log.debug("direct patches at quality %g: %d corners, %d with depth, %d corner-like", quality,
-                          0 if c is None else len(c), len(uv), len(keep))
+                log.debug("direct patches at quality %g, corner score %g: %d corners, %d with depth, %d kept", quality,
+                          min_corner, 0 if c is None else len(c), len(uv), len(keep))
                 if len(keep) >= self.cfg.direct_min_inliers:
                     break
             cam = r.camera
