@@ -107,6 +107,10 @@ def test_a_loose_station_is_the_one_scan_check_names(tmp_path):
     from services.sim.scenes import make_scene
     from services.sim.site import config_for
 
+    from services.sim.cli import FLAW_NAMES
+    from services.sim.lidar import FLAWS
+
+    assert set(FLAW_NAMES) == set(FLAWS)  # every flaw preset can be named to cristal sim
     cfg = config_for("office", seed=1, frames=2, width=160, height=120, lidar_step_deg=0.4, scan_flaws="loose")
     generate_site(cfg, tmp_path / "s")
     scan = load_scan(tmp_path / "s" / "scan.ply")

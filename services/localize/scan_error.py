@@ -30,8 +30,8 @@ import math
 
 import numpy as np
 
-__all__ = ["with_scan_error", "scan_floor", "median_depth", "DisagreementGrid", "local_scan_sigma", "grid_arg", "measure_scan",
-           "describe", "write_accuracy", "read_accuracy", "read_accuracy_mm"]
+__all__ = ["with_scan_error", "scan_floor", "median_depth", "DisagreementGrid", "local_scan_sigma", "grid_arg",
+           "measure_scan", "describe", "write_accuracy", "read_accuracy", "read_accuracy_mm"]
 
 
 def scan_floor(scan_sigma_m: float, depth_m: float) -> tuple[float, float]:
@@ -78,7 +78,8 @@ class DisagreementGrid:
         if counts is None or len(counts) != len(station_sigma_m):
             return None
         n = len(scan)
-        idx = np.arange(n) if n <= max_points else np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+        idx = (np.arange(n) if n <= max_points else
+               np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False)))
         label = np.searchsorted(np.cumsum(counts), idx, side="right")
         own = np.where(np.isfinite(station_sigma_m), station_sigma_m, default_m / math.sqrt(2.0))
         P = np.asarray(scan.xyz[idx], np.float64) + scan.origin
@@ -202,7 +203,8 @@ def read_accuracy(map_dir) -> dict | None:
         return None
     if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1000):
         return None
-    return {**record, "scan_sigma_mm": float(v), "stations": record.get("stations") if isinstance(record.get("stations"), list) else []}
+    stations = record.get("stations")
+    return {**record, "scan_sigma_mm": float(v), "stations": stations if isinstance(stations, list) else []}
 
 
 def read_accuracy_mm(map_dir) -> float | None:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from services.sim.lidar import FLAWS
+# services.sim.lidar.FLAWS's names (importing it here would load numba for every cristal command; test_sim checks them)
+FLAW_NAMES = ("none", "survey", "registration", "poor", "loose")
 
 SIM_EPILOG = """\
 examples:
@@ -52,7 +53,7 @@ def register(sub) -> None:
                         "shutter); stamps and ground truth are the middle row's")
     p.add_argument("--lidar-step", type=float, dest="lidar_step_deg",
                    help="scanner angular step in degrees (office 0.2, warehouse 0.4); halving it quadruples the points")
-    p.add_argument("--scan-flaws", choices=list(FLAWS), default="none",
+    p.add_argument("--scan-flaws", choices=FLAW_NAMES, default="none",
                    help="what a real registered scan gets wrong: each station registered a little off, its panorama "
                         "exposed and white-balanced apart, mixed pixels floating along silhouettes. survey: 3 mm / "
                         "0.01 deg, 10 %% exposure, 30 %% of edge returns mixed; registration: the survey's registration "
