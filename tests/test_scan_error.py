@@ -56,7 +56,7 @@ def test_auto_takes_what_build_db_or_prebuild_recorded_and_a_number_as_given(tmp
     assert read_accuracy_mm(tmp_path) is None and resolved("auto", map_dir=tmp_path) == 0.0
 
 
-def _two_rooms(sigma_m):
+def _two_rooms():
     """Two rooms 7 m apart: stations 0 and 1 scan the first (half its points each), station 2 the second."""
     import numpy as np
 
@@ -83,7 +83,7 @@ def test_the_scans_error_is_told_where_it_lies():
 
     from services.localize.scan_error import DisagreementGrid, grid_arg, local_scan_sigma
 
-    scan = _two_rooms(None)
+    scan = _two_rooms()
     grid = DisagreementGrid.from_scan(scan, np.array([0.010, 0.0, 0.0]), 0.012)
     first, second = np.asarray(scan.xyz[:80_000], float), np.asarray(scan.xyz[80_000:], float)
     # half the first room's points are the loose station's: sqrt(2 x (10² + 0²) / 2) = 10 mm; none of the second's
@@ -108,7 +108,7 @@ def test_auto_finds_where_the_error_lies_in_the_database_or_beside_the_map(tmp_p
     from services.localize.cli import resolve_scan_sigma, scan_grid
     from services.localize.scan_error import DisagreementGrid, read_accuracy, write_accuracy
 
-    rec = DisagreementGrid.from_scan(_two_rooms(None), np.array([0.010, 0.0, 0.0]), 0.012).to_record()
+    rec = DisagreementGrid.from_scan(_two_rooms(), np.array([0.010, 0.0, 0.0]), 0.012).to_record()
     args = Namespace(scan_sigma_mm="auto")
     resolve_scan_sigma(args, db_meta={"scan_sigma_mm": 12.0, "scan_grid": rec})
     assert scan_grid(args) is not None and args.scan_sigma_mm == 12.0
