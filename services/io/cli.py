@@ -44,9 +44,14 @@ auto): no camera is placed better than its scan, and its 1-sigma then says so.
 A camera between stations that disagree by s errs up to about 2 s at its centre and s / d in orientation (d: the
 distance to what it sees): 8 mm at 2 m is 1.6 cm / 0.23 deg, beyond the 1 cm / 0.1 deg a perfect scan allows.
 
+A pair's disagreement is both stations' errors; solved over all pairs, each station's own share is printed and a
+station far beyond the rest is named loose (a setup few targets held: re-register it; --plot rings it). With three or
+more stations that share surfaces; two alone split it. The record keeps where on the site the error lies, and each
+pose counts the disagreement of the stations whose points it sees, not the pooled number.
+
 Needs to know which points each station has: E57 files (one scan per station), simulated scans and PLY files
 written by cristal ('cristal scan convert survey.e57 scan.ply' keeps it). A merged PLY from elsewhere cannot tell.
-The last stdout line is a JSON summary (registration_mm, noise_mm, pairs).
+The last stdout line is a JSON summary (registration_mm, noise_mm, pairs, station_mm, loose_stations).
 """
 
 CONVERT_EPILOG = """\
