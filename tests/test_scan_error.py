@@ -39,7 +39,7 @@ def test_auto_takes_what_build_db_or_prebuild_recorded_and_a_number_as_given(tmp
     from argparse import Namespace
 
     from services.localize.cli import resolve_scan_sigma, scan_sigma_m
-    from services.localize.scan_error import read_accuracy_mm, write_accuracy
+    from services.localize.scan_error import read_accuracy, write_accuracy
 
     def resolved(value, **where):
         args = Namespace(scan_sigma_mm=value)
@@ -51,9 +51,9 @@ def test_auto_takes_what_build_db_or_prebuild_recorded_and_a_number_as_given(tmp
     assert resolved("auto", db_meta={"scan_sigma_mm": None}, scan=object()) == 0.0  # build-db could not tell: no retry
     assert resolved("auto", map_dir=tmp_path) == 0.0  # nothing recorded
     write_accuracy(tmp_path, {"format_version": 1, "scan_sigma_mm": 6.5, "noise_mm": 1.2, "pairs": 4, "stations": 3})
-    assert read_accuracy_mm(tmp_path) == 6.5 and resolved("auto", map_dir=tmp_path) == pytest.approx(0.0065)
+    assert read_accuracy(tmp_path)["scan_sigma_mm"] == 6.5 and resolved("auto", map_dir=tmp_path) == pytest.approx(0.0065)
     (tmp_path / "scan_accuracy.json").write_text("{broken")
-    assert read_accuracy_mm(tmp_path) is None and resolved("auto", map_dir=tmp_path) == 0.0
+    assert read_accuracy(tmp_path) is None and resolved("auto", map_dir=tmp_path) == 0.0
 
 
 def _two_rooms():

@@ -239,8 +239,8 @@ def plot_station_agreement(agreement, scan: "Scan", out_png: str | Path, max_poi
         ax.annotate(f"{mm:.1f}", C[[a, b], :2].mean(axis=0), fontsize=7, ha="center", va="center", zorder=4,
                     bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
     ax.plot(C[:, 0], C[:, 1], "o", color=EST_COLOR, ms=6, ls="none", zorder=3, label=f"stations ({len(C)})")
-    own = 1e3 * agreement.station_sigmas_m()
-    loose = agreement.loose_stations()
+    own_m = agreement.station_sigmas_m()
+    own, loose = 1e3 * own_m, agreement.loose_stations(own_m)
     if loose:
         ax.plot(C[loose, 0], C[loose, 1], "o", mfc="none", mec="red", mew=2, ms=14, ls="none", zorder=3,
                 label="loose: off its neighbours well beyond the rest")

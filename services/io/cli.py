@@ -152,6 +152,7 @@ def run_check(args) -> int:
     from services.cli import CliError, emit_summary
     from services.io.registration import station_agreement
     from services.io.scans import load_scan
+    from services.localize.scan_error import scan_floor
 
     if args.sample < 100:
         raise CliError(f"--sample must be at least 100 points per station, got {args.sample}")
@@ -177,19 +178,21 @@ def run_check(args) -> int:
         print("  station  against  shared points  distance mm  registration mm")
         for p in sorted(a.pairs, key=lambda p: -p.registration_m):
             print(f"  {p.a:7d}  {p.b:7d}  {p.n:13,d}  {1e3 * p.between_m:11.1f}  {1e3 * p.registration_m:15.1f}")
-        sig = 1e3 * a.station_sigmas_m()
+        own_m = a.station_sigmas_m()
+        sig = 1e3 * own_m
         summary["station_mm"] = [None if not np.isfinite(x) else round(float(x), 2) for x in sig]
         print(f"  each station's own share (from all its pairs; the worst {min(10, len(sig))} of {len(sig)}):")
         print("  station  registration mm")
         for k in np.argsort(-np.nan_to_num(sig, nan=-1.0))[:10]:
             print(f"  {k:7d}  {sig[k]:15.1f}" if np.isfinite(sig[k]) else f"  {k:7d}  {'(no shared surface)':>15s}")
-        loose = a.loose_stations()
+        loose = a.loose_stations(own_m)
         summary["loose_stations"] = loose
         if loose:
             who = (f"stations {', '.join(map(str, loose))} disagree with their" if len(loose) > 1 else
                    f"station {loose[0]} disagrees with its")
             print(f"  {who} neighbours well beyond the rest: check the registration there (targets, overlap)")
-        print(f"  a camera placed in it errs up to {mm / 5:.1f} cm and {mm / 2000 * 57.2958:.2f} deg seen at 2 m: "
+        floor_m, floor_deg = scan_floor(mm / 1000, 2.0)
+        print(f"  a camera placed in it errs up to {100 * floor_m:.1f} cm and {floor_deg:.2f} deg seen at 2 m: "
               "'cristal build-db' and 'prebuild' record it, and each pose's reported 1-sigma counts it ("
               f"--scan-sigma-mm auto; or pass {mm:.1f})" + ("; over 1 cm: check the registration" if mm > 10 else ""))
         if args.plot:

@@ -91,10 +91,11 @@ class StationAgreement:
         out[seen] = 1e-3 * np.sqrt(x)
         return out
 
-    def loose_stations(self, factor: float = 3.0, min_m: float = 0.002) -> list[int]:
-        """The stations whose own error (:meth:`station_sigmas_m`) is ``factor`` times the stations' median and at least
-        ``min_m``: a setup the registration held weakly (few targets, a corridor). Needs three stations that share."""
-        s = self.station_sigmas_m()
+    def loose_stations(self, own_m: np.ndarray | None = None, factor: float = 3.0, min_m: float = 0.002) -> list[int]:
+        """The stations whose own error (``own_m``, :meth:`station_sigmas_m` when not given) is ``factor`` times the
+        stations' median and at least ``min_m``: a setup the registration held weakly (few targets, a corridor). Needs
+        three stations that share."""
+        s = self.station_sigmas_m() if own_m is None else np.asarray(own_m, float)
         ok = np.isfinite(s)
         if ok.sum() < 3:
             return []

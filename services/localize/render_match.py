@@ -1485,7 +1485,9 @@ class RenderMatchTracker:
             r = kf.render
             v, u = np.nonzero(r.depth > 0)
             kf.depth_m = float(np.median(r.depth[v, u])) if len(v) else float("nan")
-            pick = slice(None, None, max(1, len(v) // 400))
-            X, _ = r.backproject(np.column_stack([u[pick], v[pick]]).astype(np.float64))
+            X = None
+            if self.cfg.scan_grid is not None:  # (the points it sees: where on the site the scan's error is read)
+                pick = slice(None, None, max(1, len(v) // 400))
+                X, _ = r.backproject(np.column_stack([u[pick], v[pick]]).astype(np.float64))
             kf.scan_sigma_m = local_scan_sigma(self.cfg.scan_sigma_m, self.cfg.scan_grid, X)
         return kf.scan_sigma_m, kf.depth_m

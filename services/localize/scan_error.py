@@ -31,7 +31,7 @@ import math
 import numpy as np
 
 __all__ = ["with_scan_error", "scan_floor", "median_depth", "DisagreementGrid", "local_scan_sigma", "grid_arg",
-           "measure_scan", "describe", "write_accuracy", "read_accuracy", "read_accuracy_mm"]
+           "measure_scan", "describe", "write_accuracy", "read_accuracy"]
 
 
 def scan_floor(scan_sigma_m: float, depth_m: float) -> tuple[float, float]:
@@ -166,7 +166,7 @@ def measure_scan(scan) -> dict:
     return {"format_version": ACCURACY_VERSION, "n_stations": len(scan.stations),
             "scan_sigma_mm": round(1e3 * a.registration_m, 2) if ok else None,
             "noise_mm": round(1e3 * a.noise_m, 2) if ok else None, "pairs": len(a.pairs) if a is not None else 0,
-            "stations": stations, "loose_stations": a.loose_stations() if ok else [],
+            "stations": stations, "loose_stations": a.loose_stations(own) if ok else [],
             "grid": None if grid is None else grid.to_record()}
 
 
@@ -205,9 +205,3 @@ def read_accuracy(map_dir) -> dict | None:
         return None
     stations = record.get("stations")
     return {**record, "scan_sigma_mm": float(v), "stations": stations if isinstance(stations, list) else []}
-
-
-def read_accuracy_mm(map_dir) -> float | None:
-    """The scan error recorded beside a map (mm), None when there is none or it could not be measured."""
-    record = read_accuracy(map_dir)
-    return None if record is None else record["scan_sigma_mm"]
