@@ -84,7 +84,7 @@ from services.localize.direct import (DirectConfig, align_and_solve, cov_sigmas,
 from services.prebuild.patches import (PATCH_FILE, LandmarkPatches, alignment_backend, corner_scores, map_fingerprint,
                                       search_patches)
 from services.prebuild.stella_map import StellaMap, read_map
-from services.relocalize.ambiguity import rival
+from services.relocalize.ambiguity import distinct, rival
 from services.relocalize.hint import near_hint
 
 __all__ = ["PnlConfig", "PnlResult", "PnlLocalizer", "Status"]
@@ -125,15 +125,22 @@ class PnlConfig:
     #                                     slipped at frame 88 and no place fitted again, 88/150; stretched, 149/150). Clean walks' frames span 130-250
     reloc_keyframes: int = 4  # best-voted keyframes tried
     reloc_ransac_px: float = 4.0
-    reloc_min_inliers: int = 15
+    reloc_min_inliers: int = 11  # coarse PnP inliers a place needs before it is tracked from (_settle), which decides:
+    #                              15 -> 11 relocalized 11 more of 320 cold frames on eight office sites and 2 more of 100
+    #                              in the warehouse, none off; office seed 2's walk 197 -> 221 frames (stop 64)
     confirm_after: int = 5  # a tracked pose after this many tracked frames in a row too uncertain to report is reported
     #                         only if a relocalization of the frame agrees (within confirm_m / confirm_deg): office seed
     #                         8's track slid along a wall through 7 such frames after a turn and reported frame 282 55 cm
     #                         / 11 deg off at a 1-sigma of 0.7 cm (0 = never)
+    confirm_beyond: float = 2.0  # ... and so is one after a single tracked frame this many times the gates' 1-sigma: its
+    #                              track had slipped (office seed 2: frame 269 at 1.8 cm / 0.22 deg in an accelerating
+    #                              pan, then 270-272 aligned at 0.4-0.6 cm 1-sigma, 2.5-5.4 cm off)
     confirm_m: float = 0.03
     confirm_deg: float = 0.5
     reloc_ambiguity: float = 0.8  # another place with this share of the best's inliers makes a relocalization ambiguous,
     reloc_cold_ambiguity: float = 0.5  # ... and so do two places over 2 m away with this share (services.relocalize.ambiguity)
+    reloc_contest: int = 3  # ambiguous places tracked from to tell them apart (_contest): at most this many, else refused
+    reloc_contest_share: float = 0.5  # ... the one good pose wins when every other tracked holds under this share of its inliers
     use_velocity: bool = True
     max_speed_mps: float = 3.0  # a caller's hint of where the camera is (``near``) widens by this much a second until a pose
     readout_s: float = 0.0  # rolling shutter: rows read top to bottom over this long (0 = global shutter); a frame with a
@@ -424,6 +431,7 @@ class PnlLocalizer:
         self.relocalizations = 0
         self._sigma_last = 0.0  # the last tracked pose's position 1-sigma (m)
         self._unsure = 0  # tracked frames in a row since the last reported pose that were too uncertain to report
+        self._slipped = False  # ... one of them far beyond the gates, or tracked from an unchecked prediction: confirm
         self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
         self._near: tuple[np.ndarray, float, float | None, int] | None = None  # hint: position, radius, stamp, frames since
         self._tracked = False  # whether ``T_last`` is a tracked frame's pose or a seed (not a carried or a relocalized one)
@@ -468,7 +476,7 @@ class PnlLocalizer:
         self._vel = None
         self._tracked = False
         self._near = None
-        self._unsure = 0
+        self._unsure, self._slipped = 0, False
         self._sigma_last = 0.0
         self.shutter.reset()
         self.carry.reset()
@@ -486,7 +494,7 @@ class PnlLocalizer:
         self.T_last = T_wc
         self._tracked = True  # (a server's pose: as good as a tracked one; with no velocity the next frame is checked)
         self._stamp = stamp
-        self._unsure = 0
+        self._unsure, self._slipped = 0, False
         self._sigma_last = 0.0  # (the server's pose: its own 1-sigma is not handed over)
         self.carry.reset()
 
@@ -1034,10 +1042,43 @@ class PnlLocalizer:
         # another place about as good, or several look-alikes far away: a repetitive site (services.relocalize.ambiguity)
         why = rival(T_wc, n_best, [(T, n, None) for n, T in results if T is not T_wc], cfg.reloc_ambiguity,
                     cfg.reloc_cold_ambiguity)
-        if why:
+        if not why:
+            return self._settle(fr, T_wc, n_best, tm)
+        r = self._contest(fr, results, tm)
+        if r is None:
             fr.reason = f"ambiguous place: {why}"
             log.info("relocalization %s", fr.reason)
+        return r
+
+    def _contest(self, fr: _Frame, results: list[tuple[int, Pose]], tm: dict):
+        """Places whose descriptor matches fit the frame about as well (``results``: coarse PnP inliers, pose), told
+        apart by tracking from each (:meth:`_settle`): the place whose pose is good to report, while every other's
+        tracked pose is not plausible or holds under ``reloc_contest_share`` of its inliers. Every distinct place with
+        ``reloc_cold_ambiguity`` x the best's coarse inliers is tracked from, at most ``reloc_contest`` of them; None
+        when there are more, or when no place wins so (identical rack bays track alike: refused as before). Office cold
+        frames 71 and 77: the right place had 28 and 37 coarse inliers, a place 4.3 m / 100 deg away 27 and 33."""
+        cfg = self.cfg
+        places: list[tuple[int, Pose]] = []
+        n_best = max(n for n, _ in results)
+        for n, T in sorted(results, key=lambda nr: -nr[0]):  # every place that made it ambiguous, or none
+            if n >= cfg.reloc_cold_ambiguity * n_best and all(distinct(T, P) for _, P in places):
+                places.append((n, T))
+        if len(places) > cfg.reloc_contest:  # more look-alikes than are worth tracking from: a repetitive site
             return None
+        tracked = [self._settle(fr, T, n, tm) for n, T in places]
+        self._local_key = None
+        good = [r for r in tracked if self._good(r, fr)]
+        if len(good) != 1:
+            return None
+        win = good[0]
+        if any(r is not win and self._plausible(r) and r[2] >= cfg.reloc_contest_share * win[2] for r in tracked):
+            return None
+        return win
+
+    def _settle(self, fr: _Frame, T_wc: Pose, n_best: int, tm: dict):
+        """The pose tracked from a relocalization's coarse place ``T_wc`` (``n_best`` PnP inliers): the landmarks
+        around it matched in windows and their patches aligned, as from a tracking prediction. The result as
+        :meth:`_track` gives it, not plausible with ``fr.reason`` saying why."""
         self._local_key = None
         r = self._track(fr, T_wc, self.cfg.coarse_radius_px, tm)
         if self._plausible(r) and not r[6] and self.patches is not None and self.cfg.align:
@@ -1191,7 +1232,7 @@ class PnlLocalizer:
                                           self.cfg.velocity_carry_s if coast else None)
             if not coast or self.T_last is None:
                 self._vel = None
-            self._unsure = 0
+            self._unsure, self._slipped = 0, False
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm,
                              reason=fr.reason or "no pose")
         R, t, n, rmse, sig_m, sig_deg, _ = r
@@ -1208,7 +1249,7 @@ class PnlLocalizer:
             self._vel = None
         unconfirmed = None
         if (self._good(r, fr) and rs_settled and status == Status.TRACKING and prior is None
-                and 0 < self.cfg.confirm_after <= self._unsure):
+                and 0 < self.cfg.confirm_after and (self.cfg.confirm_after <= self._unsure or self._slipped)):
             t0 = time.perf_counter()
             unconfirmed = self._confirm(fr, T_wc)
             tm["confirm_ms"] = 1e3 * (time.perf_counter() - t0)
@@ -1220,14 +1261,14 @@ class PnlLocalizer:
         if unconfirmed is not None or not self._good(r, fr) or not rs_settled:  # not reported, but tracked from
             self.T_last = T_wc
             self._unsure += 1
-            if fr.unchecked:
-                self._unsure = max(self._unsure, self.cfg.confirm_after)
+            self._slipped |= fr.unchecked or not self._within(r, fr, self.cfg.confirm_beyond * self.cfg.max_sigma_m,
+                                                               self.cfg.confirm_beyond * self.cfg.max_sigma_deg)
             if unconfirmed is not None:
                 return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg, unconfirmed)
             return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg,
                              f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)"
                              if not self._good(r, fr) else NOT_UNDONE)
-        self.T_last, self._near, self._unsure = T_wc, None, 0
+        self.T_last, self._near, self._unsure, self._slipped = T_wc, None, 0, False
         if self.cfg.scan_sigma_m:
             sig_m, sig_deg = with_scan_error(sig_m, sig_deg, *self._view_floor(T_wc))
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
@@ -1255,10 +1296,10 @@ class PnlLocalizer:
         disagreement, or no relocalization to agree, leaves the frame unreported, tracked on from its tracked pose."""
         c = self._relocalize(fr, {})
         if not self._good(c, fr):
-            return (f"pose not confirmed after {self._unsure} uncertain frames "
+            return (f"pose not confirmed after {self._unsure} uncertain frame{'s' * (self._unsure != 1)} "
                     f"(relocalization: {fr.reason or 'no pose to report'})")
         dt, dr = T_wc.distance_to(Pose(c[0].T, -c[0].T @ c[1]))
         if dt <= self.cfg.confirm_m and dr <= self.cfg.confirm_deg:
             return None
-        return (f"pose not confirmed after {self._unsure} uncertain frames "
+        return (f"pose not confirmed after {self._unsure} uncertain frame{'s' * (self._unsure != 1)} "
                 f"(a relocalization is {100 * dt:.0f} cm / {dr:.1f} deg away)")
