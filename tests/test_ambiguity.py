@@ -37,3 +37,17 @@ def test_a_rival_within_two_metres_is_asked_about_not_counted():
     assert "verified" in rival(HERE, 38, turned, verify=lambda tag: True)
     # beyond 2 m nobody is asked
     assert rival(HERE, 38, [(at(3.0), 32, None)], verify=lambda tag: 1 / 0) is not None
+
+
+def test_a_far_rival_is_asked_about_only_by_who_can_render_there():
+    """Office seed 90's cold frames 151 and 156: 56 and 44 coarse inliers at a place 6 m / 90-100 deg away, against 64
+    and 53. Refused unseen without ``verify_far``; with it, refused only when the place is confirmed there (the
+    warehouse's wrong aisle was: a look-alike), and a chance fit no render confirms leaves the best place standing."""
+    far = [(at(6.1, 92), 56, "6 m away")]
+    assert rival(HERE, 64, far, verify=lambda tag: False) is not None  # (``verify`` is for near rivals only)
+    asked = []
+    assert rival(HERE, 64, far, verify_far=lambda tag: asked.append(tag) or False) is None
+    assert asked == ["6 m away"]
+    assert "verified too" in rival(HERE, 64, far, verify_far=lambda tag: True)
+    near = [(at(0.4, 91), 55, "near")]
+    assert rival(HERE, 64, near, verify_far=lambda tag: 1 / 0) is not None  # (and ``verify_far`` for far ones only)

@@ -910,13 +910,17 @@ class RenderMatchTracker:
         r.cov = self._blur_scaled(r.cov, length * self._base_scale(fr.camera) / r.px_factor)
         return r
 
-    def _reacquire(self, fr: _Frame, T: Pose, kf: Keyframe | None = None, reuse: bool = False) -> PnpResult | None:
+    def _reacquire(self, fr: _Frame, T: Pose, kf: Keyframe | None = None, reuse: bool = False,
+                   keep_unsure: bool = False) -> PnpResult | None:
         """A pose for a frame without motion (relocalizing, or re-acquiring at the last good pose) from a rough one:
         rendered at and matched until it settles (``kf``: a render at ``T`` already made; ``reuse``: a recent
         verification's render near ``T`` will do for the first match, :meth:`_reusable`), its blur read from the image
         (:meth:`_reloc_blur`), then polished directly. Where no direct alignment replaced XFeat's pose, its position
-        covariance is scaled by ``reloc_xfeat_sigma_t``^2."""
-        x = self._render_and_refine(fr, T, self.cfg.reloc_refine_rounds, kf=kf, reuse=reuse)
+        covariance is scaled by ``reloc_xfeat_sigma_t``^2. ``keep_unsure``: a pose the render confirms but too uncertain
+        to report is returned as it is (for the reason a LOST frame gives), not polished."""
+        x = self._render_and_refine(fr, T, self.cfg.reloc_refine_rounds, kf=kf, reuse=reuse, keep_unsure=keep_unsure)
+        if x is not None and not self._good(x):
+            return x
         r = self._polish(self._reloc_blur(x, fr), fr, fuse=False)
         if x is not None and r is x and r.cov is not None:  # (_reloc_blur scales x's covariance in place)
             k = np.r_[[self.cfg.reloc_xfeat_sigma_t] * 3, [1.0] * 3]
@@ -1010,13 +1014,17 @@ class RenderMatchTracker:
         return dt > self.cfg.rerender_m or dr > self.cfg.rerender_deg
 
     def _render_and_refine(self, fr: _Frame, T: Pose, rounds: int = 1, kf: Keyframe | None = None,
-                           tracking: bool = False, reuse: bool = False) -> PnpResult | None:
+                           tracking: bool = False, reuse: bool = False, keep_unsure: bool = False) -> PnpResult | None:
         """Render at ``T`` and match, up to ``rounds`` times while the pose still moves; keeps the last keyframe.
         ``kf``: an existing render at ``T`` for the first round. ``tracking``: a plausible pose is enough
         (relocalizations must be good; a plausible one before the last round is rendered at once more: office seed 5's
         cold frames 134 and 230, coarse poses 12 / 54 cm off, matched 5.7 / 5.3 cm off at 1.0 / 1.9 cm sigma first).
         ``reuse``: the first round may match a recent verification's render near ``T`` (:meth:`_reusable`); as before,
-        the rounds stop early only on a render within 2 cm of the pose found."""
+        the rounds stop early only on a render within 2 cm of the pose found. ``keep_unsure``: the last round's pose is
+        returned when it is plausible though not good, so the frame says it was found but too uncertain (office seed
+        90's cold frames 71, 77 and 126 said "no place in the database was confirmed by a render": XFeat 326-352
+        inliers at 0.4-0.5 cm / 0.10-0.13 deg 1-sigma there. Polished by direct alignment, such poses were reported
+        instead: seed 13 222 -> 227 frames but 0.080 -> 0.087 deg, frame 270 0.36 deg off at 0.099: not so)."""
         accept = self._plausible if tracking else self._good
         r = None
         if kf is None and reuse:
@@ -1031,6 +1039,8 @@ class RenderMatchTracker:
                 if i + 1 < rounds and self._plausible(r):  # closer, not yet sure: rendered at once more
                     T = r.T_wc
                     continue
+                if keep_unsure and self._plausible(r):
+                    return r
                 return None
             kf.ref_inliers = r.n_inliers
             self.kf = kf
@@ -1107,7 +1117,10 @@ class RenderMatchTracker:
             fr.reason = "no place in the database fits the frame" if not hyps else \
                 f"too few inliers in the database: the best place has {hyps[0][0].n_inliers}, a pose needs {need}"
             return None
-        why = db.ambiguous(hyps, ambiguity, far, verify=lambda _: False)  # near rivals: verified below, in turn
+        # rivals: verified below, in turn (renders there); a far one only where it will be (else refused unseen)
+        verified = [c for c, _ in hyps[:cfg.reloc_verify] if c.n_inliers >= need]
+        why = db.ambiguous(hyps, ambiguity, far, verify=lambda _: False,
+                           verify_far=lambda c: not any(c is v for v in verified))
         if why:
             fr.reason = f"ambiguous place: {why}"
             return None
@@ -1115,7 +1128,7 @@ class RenderMatchTracker:
         for coarse, _ in hyps[:cfg.reloc_verify]:
             if coarse.n_inliers < need or (found is not None and coarse.n_inliers < cfg.reloc_rival_verify * found[0].n_inliers):
                 break
-            r = self._reacquire(fr, coarse.T_wc, reuse=True)
+            r = self._reacquire(fr, coarse.T_wc, reuse=True, keep_unsure=True)
             if not self._good(r):
                 if r is not None and fr.reason is None:  # confirmed by its render, but the frame's blur leaves it unsure
                     fr.reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg "
@@ -1164,7 +1177,8 @@ class RenderMatchTracker:
 
         kf = self.kf
         rival = db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
-                             ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify)
+                             ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify,
+                             verify_far=verify)
         self.kf = kf
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
         if rival:

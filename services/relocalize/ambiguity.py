@@ -37,18 +37,23 @@ def distinct(a: Pose, b: Pose) -> bool:
 
 
 def rival(best: Pose, support: int, others: Iterable[tuple[Pose, int, Any]], ambiguity: float = 0.8,
-          far_ambiguity: float | None = None, verify: Callable[[Any], bool] | None = None) -> str | None:
+          far_ambiguity: float | None = None, verify: Callable[[Any], bool] | None = None,
+          verify_far: Callable[[Any], bool] | None = None) -> str | None:
     """Why the place ``best`` (``support`` inliers) is ambiguous among ``others`` (pose, inliers, caller's tag),
     or None when it is not. ``verify(tag)`` decides for rivals within ``FAR_M`` that reach ``ambiguity``: True
-    when the rival is a place of its own (see the module docstring)."""
+    when the rival is a place of its own (see the module docstring); ``verify_far(tag)`` the same for rivals
+    further away (without it they are refused unseen). A far place that a render there confirms is a look-alike
+    (the warehouse's wrong aisle: 89 inliers against the true one's 78); one it does not confirm was a chance fit
+    (office seed 90's cold frames: 56 coarse inliers 6.1 m / 92 deg away against 64)."""
     alike: list[Pose] = []
     for T, n, tag in others:
         if not distinct(best, T):
             continue
         dt, dr = best.distance_to(T)
         if n >= ambiguity * support:
-            if verify is not None and dt <= FAR_M:
-                if verify(tag):
+            check = verify if dt <= FAR_M else verify_far
+            if check is not None:
+                if check(tag):
                     return f"a place {dt:.1f} m / {dr:.0f} deg away verified too"
                 continue
             return f"{n} inliers at a place {dt:.1f} m / {dr:.0f} deg away, against {support}"

@@ -167,16 +167,20 @@ class RelocDB:
 
     @staticmethod
     def ambiguous(hyps: list[tuple[PnpResult, int]], ambiguity: float = 0.8, far_ambiguity: float | None = None,
-                  verify: Callable[[PnpResult], bool] | None = None) -> str | None:
+                  verify: Callable[[PnpResult], bool] | None = None,
+                  verify_far: Callable[[PnpResult], bool] | None = None) -> str | None:
         """Why another place of ``hypotheses`` fits about as well as the first (``ambiguity`` x its inliers), or,
         with ``far_ambiguity``, two places more than 2 m away fit with that share of them; None if none does.
-        ``verify``: asked about rivals within 2 m instead of counting them (services.relocalize.ambiguity)."""
-        return RelocDB._rival_in(hyps[0][0], hyps[0][1], hyps[1:], ambiguity, far_ambiguity, verify=verify) if len(hyps) > 1 else None
+        ``verify`` / ``verify_far``: asked about rivals within / beyond 2 m instead of counting them
+        (services.relocalize.ambiguity)."""
+        return RelocDB._rival_in(hyps[0][0], hyps[0][1], hyps[1:], ambiguity, far_ambiguity, verify=verify,
+                                 verify_far=verify_far) if len(hyps) > 1 else None
 
     def has_rival(self, feats: Features, camera: Camera, best: PnpResult, skip: int = 8, check: int = 32,
                   max_error_px: float = 3.0, ambiguity: float = 0.8,
                   near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None,
-                  far_ambiguity: float | None = None, verify: Callable[[PnpResult], bool] | None = None) -> str | None:
+                  far_ambiguity: float | None = None, verify: Callable[[PnpResult], bool] | None = None,
+                  verify_far: Callable[[PnpResult], bool] | None = None) -> str | None:
         """Why (None: not) views ranked ``skip``..``check`` for this query hold another place that fits it about as
         well as ``best``. In the simulated warehouse the true aisle ranked outside the top 8 twice, and a
         wrong aisle 24-30 m away was accepted and then confirmed by its own render; the top 32 held a rival
@@ -188,14 +192,15 @@ class RelocDB:
         found = _inside(self._solve_views(feats, camera, order, floor, max_error_px), within)
         # the best place's support: its own views ranked lower may fit better (the office: 50 inliers in the top 8, 91 below)
         support = max([best.n_inliers] + [r.n_inliers for r, _ in found if not _distinct(best.T_wc, r.T_wc)])
-        return self._rival_in(best, -1, found, ambiguity, far_ambiguity, support, verify)
+        return self._rival_in(best, -1, found, ambiguity, far_ambiguity, support, verify, verify_far)
 
     @staticmethod
     def _rival_in(best: PnpResult, best_view: int, others, ambiguity: float, far_ambiguity: float | None = None,
-                  support: int | None = None, verify: Callable[[PnpResult], bool] | None = None) -> str | None:
+                  support: int | None = None, verify: Callable[[PnpResult], bool] | None = None,
+                  verify_far: Callable[[PnpResult], bool] | None = None) -> str | None:
         """Why ``others`` ((result, view) pairs) hold a rival place of ``best`` (services.relocalize.ambiguity), or None."""
         why = rival(best.T_wc, support or best.n_inliers, [(r.T_wc, r.n_inliers, r) for r, _ in others], ambiguity,
-                    far_ambiguity, verify)
+                    far_ambiguity, verify, verify_far)
         if why:
             log.info("relocalization ambiguous (view %d): %s", best_view, why)
         return why
