@@ -1117,10 +1117,18 @@ class RenderMatchTracker:
             fr.reason = "no place in the database fits the frame" if not hyps else \
                 f"too few inliers in the database: the best place has {hyps[0][0].n_inliers}, a pose needs {need}"
             return None
-        # rivals: verified below, in turn (renders there); a far one only where it will be (else refused unseen)
-        verified = [c for c, _ in hyps[:cfg.reloc_verify] if c.n_inliers >= need]
-        why = db.ambiguous(hyps, ambiguity, far, verify=lambda _: False,
-                           verify_far=lambda c: not any(c is v for v in verified))
+        def far_verify(rival: PnpResult) -> bool:
+            # a rival more than 2 m away is a place of its own when a render there holds even a pose too uncertain to
+            # report, and agrees with the frame as a picture; one that holds none was a chance fit (office seed 90's
+            # cold frames 151 and 156: 56 and 44 coarse inliers 6 m away, against 64 and 53, refused unseen before)
+            kf = self.kf
+            v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds, tracking=True, reuse=True)
+            seen = v is not None and not self._agreement(fr, self.kf) < cfg.reloc_min_agreement
+            self.kf = kf
+            return seen
+
+        # near rivals: verified below, in turn; far ones rendered at now
+        why = db.ambiguous(hyps, ambiguity, far, verify=lambda _: False, verify_far=far_verify)
         if why:
             fr.reason = f"ambiguous place: {why}"
             return None
@@ -1178,7 +1186,7 @@ class RenderMatchTracker:
         kf = self.kf
         rival = db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
                              ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify,
-                             verify_far=verify)
+                             verify_far=far_verify)
         self.kf = kf
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
         if rival:
