@@ -1119,13 +1119,9 @@ class RenderMatchTracker:
             return None
         def far_verify(rival: PnpResult) -> bool:
             # a rival more than 2 m away is a place of its own when a render there holds even a pose too uncertain to
-            # report, and agrees with the frame as a picture; one that holds none was a chance fit (office seed 90's
-            # cold frames 151 and 156: 56 and 44 coarse inliers 6 m away, against 64 and 53, refused unseen before)
-            kf = self.kf
-            v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds, tracking=True, reuse=True)
-            seen = v is not None and not self._agreement(fr, self.kf) < cfg.reloc_min_agreement
-            self.kf = kf
-            return seen
+            # report; one that holds none was a chance fit (office seed 90's cold frames 151 and 156: 56 and 44 coarse
+            # inliers 6 m away, against 64 and 53, refused unseen before stop 64)
+            return self._rival_holds(fr, rival.T_wc, unsure=True) is not None
 
         # near rivals: verified below, in turn; far ones rendered at now
         why = db.ambiguous(hyps, ambiguity, far, verify=lambda _: False, verify_far=far_verify)
@@ -1179,20 +1175,28 @@ class RenderMatchTracker:
         check = max(cfg.reloc_check, int(np.ceil(fraction * db.n_views)))
 
         def verify(rival: PnpResult) -> bool:  # a near rival is a place of its own when it verifies elsewhere
-            v = self._render_and_refine(fr, rival.T_wc, cfg.reloc_refine_rounds, reuse=True)
-            return (v is not None and not self._same_place(r, v)
-                    and not self._agreement(fr, self.kf) < cfg.reloc_min_agreement)  # (a wrong aisle is no rival)
+            v = self._rival_holds(fr, rival.T_wc, unsure=False)
+            return v is not None and not self._same_place(r, v)
 
-        kf = self.kf
         rival = db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
                              ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify,
                              verify_far=far_verify)
-        self.kf = kf
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
         if rival:
             fr.reason = f"ambiguous place: {rival}"
             return None
         return r
+
+    def _rival_holds(self, fr: _Frame, T: Pose, unsure: bool) -> PnpResult | None:
+        """The pose a render at a rival place ``T`` holds (rendered and matched as a relocalization is; ``unsure``: a
+        pose too uncertain to report counts too) when the render also agrees with the frame as a picture (a wrong
+        aisle is no rival), else None. The tracker's keyframe is left as it was."""
+        kf = self.kf
+        v = self._render_and_refine(fr, T, self.cfg.reloc_refine_rounds, tracking=unsure, reuse=True)
+        if v is not None and self._agreement(fr, self.kf) < self.cfg.reloc_min_agreement:
+            v = None
+        self.kf = kf
+        return v
 
     def _look_around(self, fr: _Frame, a: "_Anchor", near, reach, walk) -> PnpResult | None:
         """A pose for a LOST frame soon after the last reported one (``a``) that the database did not place: views

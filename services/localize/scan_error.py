@@ -191,7 +191,7 @@ def write_accuracy(map_dir, record: dict) -> None:
 
 def read_accuracy(map_dir) -> dict | None:
     """The :func:`measure_scan` record beside a map, None when there is none or its scan error could not be measured
-    (``scan_sigma_mm`` a float in millimetres, ``stations`` as recorded: ``[]`` in records before format 2)."""
+    (``scan_sigma_mm`` a float in millimetres; :func:`grid_arg` reads its ``grid``, absent before format 2)."""
     import json
     from pathlib import Path
 
@@ -203,5 +203,4 @@ def read_accuracy(map_dir) -> dict | None:
         return None
     if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1000):
         return None
-    stations = record.get("stations")
-    return {**record, "scan_sigma_mm": float(v), "stations": stations if isinstance(stations, list) else []}
+    return {**record, "scan_sigma_mm": float(v)}
