@@ -149,6 +149,57 @@ def test_e57_without_colour(tmp_path):
     assert len(s) == N and np.all(s.rgb == 128) and s.meta["has_color"] is False
 
 
+INTENSITY = np.r_[RNG.uniform(0.0, 1.0, N - 2), 0.0, 1.0]  # a laser's return strength, two points at the extremes
+
+
+def assert_grey_from(s, intensity):
+    """Points grey from ``intensity``: one level per point on all three channels, in the intensity's order, spread."""
+    assert s.meta["has_color"] is False and s.meta["intensity_grey"] == len(intensity) == len(s)
+    assert np.all(s.rgb[:, :1] == s.rgb)
+    g = s.rgb[:, 0].astype(float)
+    assert np.all(np.diff(g[np.argsort(intensity, kind="stable")]) >= 0)  # monotone in the intensity
+    assert g.min() == 0 and g.max() == 255 and 90 <= np.median(g) <= 140  # stretched, mid-tones in the middle
+
+
+def test_e57_intensity_without_colour_becomes_grey(tmp_path):
+    fields = {"cartesianX": ("double", XYZ[:, 0]), "cartesianY": ("double", XYZ[:, 1]),
+              "cartesianZ": ("double", XYZ[:, 2]), "intensity": (("int", 0, 2047), np.rint(INTENSITY * 2047))}
+    p = _write_e57_fields(tmp_path / "intensity.e57", fields, [1, 0, 0, 0], [0, 0, 0])
+    s = load_scan(p)  # usable without require_color=False: the intensity gives the renderer something to show
+    assert_grey_from(s, INTENSITY)
+    assert scan_info(s)["intensity_grey"] == N
+    assert_grey_from(load_scan(p), INTENSITY)  # and from the cache
+
+
+@pytest.mark.parametrize("name,dtype,scale", [("intensity", "f4", 1.0), ("scalar_Intensity", "f4", 2047.0),
+                                              ("intensity", "u2", 65535.0), ("reflectance", "f4", -30.0)])
+def test_ply_intensity_without_colour_becomes_grey(tmp_path, name, dtype, scale):
+    from plyfile import PlyData, PlyElement
+
+    v = np.empty(N, [(a, "f4") for a in "xyz"] + [(name, dtype)])
+    for k, a in enumerate("xyz"):
+        v[a] = XYZ[:, k]
+    v[name] = np.rint(INTENSITY * scale) if dtype[0] == "u" else INTENSITY * scale  # (dB reflectance: negative)
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(tmp_path / "i.ply"))
+    assert_grey_from(load_scan(tmp_path / "i.ply"), INTENSITY if scale > 0 else -INTENSITY)
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_las_intensity_without_colour_becomes_grey(tmp_path, suffix):
+    import laspy
+
+    las = laspy.create(point_format=1, file_version="1.2")  # no colour
+    las.header.offsets, las.header.scales = np.floor(XYZ.min(axis=0)), np.array([0.001, 0.001, 0.001])
+    las.x, las.y, las.z = XYZ[:, 0], XYZ[:, 1], XYZ[:, 2]
+    las.intensity = np.rint(INTENSITY * 65535).astype(np.uint16)
+    las.write(str(tmp_path / f"i{suffix}"))
+    assert_grey_from(load_scan(tmp_path / f"i{suffix}"), INTENSITY)
+    las.intensity = np.zeros(N, np.uint16)  # a writer that left the field empty: no grey to take from it
+    las.write(str(tmp_path / f"zero{suffix}"))
+    assert_error(tmp_path / f"zero{suffix}", "no colour")
+    assert np.all(load_scan(tmp_path / f"zero{suffix}", require_color=False).rgb == 128)
+
+
 def _write_e57_fields(path, fields, q_wxyz, t, colour_max=None):
     """One E57 scan written with libE57 directly (pye57's writer only does float cartesian, 8-bit colour).
 

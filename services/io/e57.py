@@ -4,7 +4,8 @@ Each E57 scan stores points in its scanner's frame plus a pose (rotation quatern
 w, x, y, z and a translation) mapping them to the file's frame: ``X_world = R X_scan + t``.
 We apply it per chunk, concatenate all scans and record each pose as a ``Pose``
 (scanner-to-world) in ``scan.stations``. Cartesian and spherical coordinates are read;
-points flagged invalid by the scanner are dropped and counted in ``meta["dropped_invalid"]``.
+points flagged invalid by the scanner are dropped and counted in ``meta["dropped_invalid"]``. A scan without colour
+gets grey levels from its ``intensity`` field (``services.io.scans.PointSink``).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ E57_CHUNK = 1_000_000
 CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
 SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 COLOURS = ("colorRed", "colorGreen", "colorBlue")
+INTENSITY = "intensity"
 
 
 def read_e57(path: Path) -> Scan:
@@ -39,8 +41,8 @@ def read_e57(path: Path) -> Scan:
             raise ScanError(f"{path}: the E57 file contains no scans (data3D is empty)")
         has_colour = [all(c in h.point_fields for c in COLOURS) for h in headers]
         if any(has_colour) and not all(has_colour):
-            log.warning("%s: %d of %d E57 scans have no colour; their points are grey", path,
-                        has_colour.count(False), len(headers))
+            log.warning("%s: %d of %d E57 scans have no colour; their points are grey (from intensity where they have "
+                        "it)", path, has_colour.count(False), len(headers))
         sink = PointSink(sum(h.point_count for h in headers))
         stations, invalid, counts = [], 0, []
         for i, h in enumerate(headers):
@@ -70,7 +72,8 @@ def _read_one(e57, libe57, h, pose: Pose, sink: PointSink, desc: str, colour: bo
     if coords is None:
         raise ScanError(f"scan '{h.node['name'].value() if 'name' in h.scan_fields else '?'}' has neither cartesian "
                         f"nor spherical coordinates (fields: {', '.join(fields)})")
-    names = list(coords) + (list(COLOURS) if colour else [])
+    grey = not colour and INTENSITY in fields  # no pictures taken: grey from the laser's intensity
+    names = list(coords) + (list(COLOURS) if colour else [INTENSITY] if grey else [])
     state = "cartesianInvalidState" if coords is CARTESIAN else "sphericalInvalidState"
     if state in fields:
         names.append(state)
@@ -95,7 +98,7 @@ def _read_one(e57, libe57, h, pose: Pose, sink: PointSink, desc: str, colour: bo
             if colour:
                 rgb = np.stack([bufs[n][:m][keep] for n in COLOURS], axis=1)
                 rgb = np.clip(np.rint(rgb * (255.0 / cmax)), 0, 255).astype(np.uint8)
-            sink.add(local @ R.T + t, rgb)
+            sink.add(local @ R.T + t, rgb, bufs[INTENSITY][:m][keep] if grey else None)
     finally:
         reader.close()
     return invalid

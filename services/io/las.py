@@ -3,6 +3,7 @@
 Coordinates are scaled integers in the file; laspy applies scale and offset. LAS colour is
 16-bit by the specification, but many writers store 8-bit values: if the first chunk has
 any value above 255 the colours are taken as 16-bit and divided by 256, else kept as they are.
+A file without colour gets grey levels from its points' intensity (``services.io.scans.PointSink``).
 """
 
 from __future__ import annotations
@@ -23,7 +24,9 @@ def read_las(path: Path) -> Scan:
 
     with laspy.open(str(path)) as f:
         n = int(f.header.point_count)
-        colour = all(c in f.header.point_format.dimension_names for c in ("red", "green", "blue"))
+        dims = set(f.header.point_format.dimension_names)
+        colour = {"red", "green", "blue"} <= dims
+        intensity = not colour and "intensity" in dims  # (every point format has it; a writer may leave it zero)
         sink = PointSink(n)
         shift = None  # 8 for 16-bit colour, 0 for 8-bit; decided on the first chunk
         for pts in progress(f.chunk_iterator(CHUNK), desc=f"reading {path.name}", total=-(-n // CHUNK), unit="chunk"):
@@ -34,7 +37,7 @@ def read_las(path: Path) -> Scan:
                 if shift is None:
                     shift = 8 if len(rgb) and rgb.max() > 255 else 0
                 rgb = (rgb >> shift).astype(np.uint8)
-            sink.add(xyz, rgb)
+            sink.add(xyz, rgb, np.asarray(pts.intensity) if intensity else None)
     if sink.n + sink.dropped != n:
         raise ScanError(f"{path}: truncated LAS file: the header announces {n} points, the file holds {sink.n + sink.dropped}")
     return sink.scan(path, "las", (), has_color=colour)

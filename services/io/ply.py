@@ -1,4 +1,5 @@
-"""PLY reader: binary (little/big endian) or ASCII, float or double xyz, uchar/ushort/float colours.
+"""PLY reader: binary (little/big endian) or ASCII, float or double xyz, uchar/ushort/float colours (or, without
+colour, an intensity property: grey levels from it, ``services.io.scans.PointSink``).
 
 plyfile memory-maps binary files; the vertex table is converted ``CHUNK`` rows at a
 time into the preallocated arrays of a ``PointSink``, and the pages already converted
@@ -24,6 +25,8 @@ __all__ = ["read_ply", "to_uint8"]
 log = logging.getLogger(__name__)
 
 COLOUR_NAMES = [("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"), ("r", "g", "b")]
+INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance", "scalar_reflectance")  # any case (CloudCompare
+#                                                                      writes scalar_Intensity): grey where no colour
 
 
 def read_ply(path: Path) -> Scan:
@@ -39,6 +42,8 @@ def read_ply(path: Path) -> Scan:
     if missing:
         raise ScanError(f"{path}: the PLY vertices have no {'/'.join(missing)} coordinate (properties: {', '.join(names)})")
     colour = next((c for c in COLOUR_NAMES if all(n in names for n in c)), None)
+    lower = {n.lower(): n for n in names}
+    intensity = None if colour is not None else next((lower[n] for n in INTENSITY_NAMES if n in lower), None)
     stations = [_station(path, c) for c in ply.comments if c.split()[:1] == [STATION_TAG]]
 
     n = len(data)
@@ -51,7 +56,7 @@ def read_ply(path: Path) -> Scan:
         for k, a in enumerate("xyz"):
             xyz[:, k] = rows[a]
         rgb = None if colour is None else np.stack([to_uint8(rows[c], float_scale) for c in colour], axis=1)
-        sink.add(xyz, rgb)
+        sink.add(xyz, rgb, None if intensity is None else rows[intensity])
         _release(data)
     counts = _station_points(path, ply.comments)
     if counts is not None and (sink.dropped or sum(counts) != n):

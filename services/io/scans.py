@@ -19,16 +19,18 @@ import numpy as np
 
 from services.io.scan import Scan, ScanError
 
-__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY"]
+__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY", "intensity_grey"]
 
 log = logging.getLogger(__name__)
 
 # Bump when a reader's output changes: cached results of older readers are then re-parsed.
-READER_VERSION = 2  # 2: station_points (each station's points, in file order) in meta
+READER_VERSION = 3  # 2: station_points (each station's points, in file order) in meta; 3: grey from intensity
 SUFFIXES = {".ply": "ply", ".e57": "e57", ".las": "las", ".laz": "las"}
 CHUNK = 2_000_000  # points converted at a time: bounds the float64 temporaries to ~50 MB
 LARGE = 1e4  # coordinates beyond this (metres) get an origin, so float32 keeps millimetres
-GREY = 128  # colour given to every point of a colourless scan when require_color=False
+GREY = 128  # colour given to every point of a scan with neither colour nor intensity when require_color=False
+INTENSITY_PERCENTILES = (1.0, 99.0)  # a colourless scan's laser intensity between these is stretched to 0..255 ...
+INTENSITY_MEDIAN_GREY = 0.45  # ... and bent by a gamma that puts its median here (photographs' mid-tones)
 STATION_TAG = "cristal_station"  # PLY comment: "cristal_station tx ty tz qx qy qz qw" (scanner-to-world)
 STATION_POINTS_TAG = "cristal_station_points"  # comment: how many points each station has, in file order
 
@@ -37,7 +39,10 @@ class PointSink:
     """Preallocated float32 xyz / uint8 rgb that readers fill chunk by chunk.
 
     ``add`` drops non-finite points (counted), fixes the origin from the first chunk
-    with finite points, and stores ``xyz - origin`` as float32.
+    with finite points, and stores ``xyz - origin`` as float32. Points without colour but with
+    the laser's intensity (scanners that took no pictures: many E57 and LAS exports) get a grey
+    level from it when the scan is made (:func:`intensity_grey`), not the flat ``GREY`` that
+    leaves a render nothing to match.
     """
 
     def __init__(self, capacity: int):
@@ -46,14 +51,18 @@ class PointSink:
         self.n = 0
         self.dropped = 0
         self.origin: np.ndarray | None = None
+        self.intensity: np.ndarray | None = None  # float32, allocated on first use
+        self.grey_runs: list[tuple[int, int]] = []  # (start, end) of the points whose grey comes from intensity
 
-    def add(self, xyz: np.ndarray, rgb: np.ndarray | None) -> None:
-        """Append a chunk: ``xyz`` (M, 3) any float dtype in world coordinates, ``rgb`` (M, 3) uint8 or None (grey)."""
+    def add(self, xyz: np.ndarray, rgb: np.ndarray | None, intensity: np.ndarray | None = None) -> None:
+        """Append a chunk: ``xyz`` (M, 3) any float dtype in world coordinates, ``rgb`` (M, 3) uint8 or None (grey);
+        ``intensity`` (M,) the laser's return strength as the file holds it, used where ``rgb`` is None."""
         finite = np.isfinite(xyz).all(axis=1)
         if not finite.all():
             self.dropped += int((~finite).sum())
             xyz = xyz[finite]
             rgb = None if rgb is None else rgb[finite]
+            intensity = None if intensity is None else intensity[finite]
         m = len(xyz)
         if m == 0:
             return
@@ -68,15 +77,62 @@ class PointSink:
         else:
             out[:] = xyz
         self.rgb[self.n:self.n + m] = GREY if rgb is None else rgb
+        if rgb is None and intensity is not None:
+            if self.intensity is None:
+                self.intensity = np.zeros(len(self.xyz), np.float32)
+            self.intensity[self.n:self.n + m] = intensity
+            if self.grey_runs and self.grey_runs[-1][1] == self.n:
+                self.grey_runs[-1] = (self.grey_runs[-1][0], self.n + m)
+            else:
+                self.grey_runs.append((self.n, self.n + m))
         self.n += m
 
     def scan(self, path: Path, fmt: str, stations=(), **meta) -> Scan:
-        """The filled points as a ``Scan`` (views, no copy); ``meta`` gets format and dropped counts."""
+        """The filled points as a ``Scan`` (views, no copy); ``meta`` gets format and dropped counts, and
+        ``intensity_grey``: how many points' grey came from the laser's intensity."""
         if self.dropped:
             log.warning("%s: dropped %d non-finite points (NaN/inf coordinates)", path, self.dropped)
-        meta = {"format": fmt, "dropped_nonfinite": self.dropped, **meta}
+        meta = {"format": fmt, "dropped_nonfinite": self.dropped, **meta, "intensity_grey": 0}
+        if self.grey_runs:
+            total = sum(b - a for a, b in self.grey_runs)
+            step = max(1, total // 2_000_000)  # the percentiles from ~2 M of them
+            sample = np.concatenate([self.intensity[a:b:step] for a, b in self.grey_runs])
+            greys = [intensity_grey(self.intensity[a:b], sample) for a, b in self.grey_runs]
+            if greys[0] is None:
+                log.warning("%s: the scan has no colour and its intensity is one value: its points are flat grey", path)
+            else:
+                for (a, b), g in zip(self.grey_runs, greys):
+                    self.rgb[a:b] = g[:, None]
+                meta["intensity_grey"] = int(sum(b - a for a, b in self.grey_runs))
+                log.warning("%s: %s points have no colour: grey from the laser's intensity instead (a render of them "
+                            "matches a photograph less well than colour does)", path, f"{meta['intensity_grey']:,}")
+            self.intensity = None
         origin = np.zeros(3) if self.origin is None else self.origin
         return Scan(self.xyz[:self.n], self.rgb[:self.n], origin, list(stations), path, meta)
+
+
+def intensity_grey(values: np.ndarray, sample: np.ndarray | None = None) -> np.ndarray | None:
+    """Grey levels (uint8) for a colourless scan's laser intensity ``values`` (any range: scanners write 0..1,
+    0..255, 12 or 16 bits, or signed): the ``INTENSITY_PERCENTILES`` of ``sample`` (default: the values) stretched to
+    0..255 with a gamma putting its median at ``INTENSITY_MEDIAN_GREY`` (a reflectance's spread varies by scanner
+    and site, a photograph's mid-tones less). None when the intensity is one value (a writer that filled the field
+    with zeros)."""
+    sample = values if sample is None else sample
+    finite = sample[np.isfinite(sample)]
+    if len(finite) == 0:
+        return None
+    lo, mid, hi = np.percentile(finite, [INTENSITY_PERCENTILES[0], 50.0, INTENSITY_PERCENTILES[1]])
+    if hi <= lo:
+        lo, hi = float(finite.min()), float(finite.max())
+        if hi <= lo:
+            return None
+    m = float(np.clip((mid - lo) / (hi - lo), 0.02, 0.98))
+    gamma = np.log(INTENSITY_MEDIAN_GREY) / np.log(m)
+    out = np.empty(len(values), np.uint8)
+    for i in range(0, len(values), CHUNK):
+        x = np.clip((np.nan_to_num(values[i:i + CHUNK].astype(np.float32), nan=lo) - lo) / (hi - lo), 0.0, 1.0)
+        out[i:i + CHUNK] = np.rint(255.0 * x ** gamma)
+    return out
 
 
 def _reader(fmt: str):
@@ -93,8 +149,10 @@ def load_scan(path: str | Path, *, cache: bool = True, require_color: bool = Tru
     """Read a ``.ply``, ``.e57``, ``.las`` or ``.laz`` scan into world-frame points (relative to ``scan.origin``).
 
     ``cache``: reuse / write the parsed arrays in ``<file>.cristal-cache/`` (memory-mapped, read-only arrays).
-    ``require_color``: a scan without colour channels is an error; with False its points are grey (128).
-    ``scan.meta`` reports ``format``, ``dropped_nonfinite``, ``has_color``, ``from_cache``, ``load_seconds``.
+    ``require_color``: a scan with neither colour channels nor intensity is an error; with False its points are grey
+    (128). Points without colour but with intensity get grey levels from it (``PointSink``).
+    ``scan.meta`` reports ``format``, ``dropped_nonfinite``, ``has_color``, ``intensity_grey`` (points grey from
+    intensity), ``from_cache``, ``load_seconds``.
     """
     t0 = time.perf_counter()
     path = Path(path)
@@ -127,15 +185,17 @@ def load_scan(path: str | Path, *, cache: bool = True, require_color: bool = Tru
         scan.meta["from_cache"] = False
         if cache:
             scan_cache.save(path, scan, READER_VERSION, stat)
-    if not scan.meta.get("has_color", True) and require_color:
-        raise ScanError(f"{path}: the scan has no colour channels (red/green/blue); "
-                        "load it with require_color=False to use grey points")
+    if not scan.meta.get("has_color", True) and not scan.meta.get("intensity_grey") and require_color:
+        raise ScanError(f"{path}: the scan has no colour channels (red/green/blue) and no laser intensity; "
+                        "load it with require_color=False to use flat grey points")
     scan.meta["load_seconds"] = round(time.perf_counter() - t0, 4)
     return scan
 
 
-def save_ply(scan: Scan, path: str | Path, binary: bool = True) -> None:
-    """Write ``scan`` as PLY, atomically: world x y z (double when the origin is non-zero, else float), uchar rgb.
+def save_ply(scan: Scan, path: str | Path, binary: bool = True, intensity: np.ndarray | None = None) -> None:
+    """Write ``scan`` as PLY, atomically: world x y z (double when the origin is non-zero, else float), uchar rgb;
+    with ``intensity`` (one float per point) a float ``intensity`` property instead of rgb (a scanner's colourless
+    export, as ``cristal sim --scan-colour intensity`` makes).
 
     Station poses go into ``comment cristal_station tx ty tz qx qy qz qw`` lines, which ``load_scan`` reads back, and
     how many points each station has (their points one station after another) into ``comment cristal_station_points``.
@@ -151,8 +211,10 @@ def save_ply(scan: Scan, path: str | Path, binary: bool = True) -> None:
     if counts is not None:
         lines += [f"comment {STATION_POINTS_TAG} " + " ".join(str(c) for c in counts)]
     lines += [f"element vertex {len(scan)}"] + [f"property {ftype} {a}" for a in "xyz"]
-    lines += [f"property uchar {c}" for c in ("red", "green", "blue")] + ["end_header", ""]
-    dtype = np.dtype([(a, "<" + fdt) for a in "xyz"] + [(c, "u1") for c in ("red", "green", "blue")])
+    channels = [("intensity", "f4", "float")] if intensity is not None else [(c, "u1", "uchar") for c in ("red", "green", "blue")]
+    lines += [f"property {t} {c}" for c, _, t in channels] + ["end_header", ""]
+    dtype = np.dtype([(a, "<" + fdt) for a in "xyz"] + [(c, "<" + d) for c, d, _ in channels])
+    values = scan.rgb if intensity is None else np.asarray(intensity, np.float32).reshape(-1, 1)
     with atomic_write(path, "wb") as f:
         f.write("\n".join(lines).encode("ascii"))
         for i in range(0, len(scan), CHUNK):
@@ -162,13 +224,13 @@ def save_ply(scan: Scan, path: str | Path, binary: bool = True) -> None:
                 rec = np.empty(len(xyz), dtype)
                 for k, a in enumerate("xyz"):
                     rec[a] = xyz[:, k]
-                for k, c in enumerate(("red", "green", "blue")):
-                    rec[c] = scan.rgb[sl, k]
+                for k, (c, _, _) in enumerate(channels):
+                    rec[c] = values[sl, k]
                 f.write(rec.data)
             else:
                 fmt = "%.6f" if wide else "%.9g"
-                rows = np.column_stack([xyz.astype(np.float64), scan.rgb[sl]])
-                np.savetxt(f, rows, fmt=[fmt] * 3 + ["%d"] * 3)
+                rows = np.column_stack([xyz.astype(np.float64), values[sl]])
+                np.savetxt(f, rows, fmt=[fmt] * 3 + (["%.6g"] if intensity is not None else ["%d"] * 3))
 
 
 def station_points(scan: Scan) -> list[int] | None:
@@ -192,6 +254,7 @@ def scan_info(scan: Scan) -> dict:
         "bounds_max": [round(float(v), 4) for v in hi],
         "origin": [float(v) for v in scan.origin],
         "has_color": bool(m.get("has_color", True)),
+        "intensity_grey": int(m.get("intensity_grey", 0)),
         "stations": [[round(float(v), 6) for v in s.to_tum()] for s in scan.stations],
         "dropped_nonfinite": int(m.get("dropped_nonfinite", 0)),
         "dropped_invalid": int(m.get("dropped_invalid", 0)),
