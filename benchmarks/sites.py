@@ -69,6 +69,8 @@ SITES: dict[str, tuple[list[str], list[str], list[str]]] = {
     "office-s8-reg": (["--preset", "office", "--seed", "8", "--scan-flaws", "registration"], [], []),
     # a millimetre registration but for one loose station, 1 cm off (stop 63): where on the site the error lies
     "office-loose": (["--preset", "office", "--seed", "1", "--scan-flaws", "loose"], [], []),
+    # a scanner that took no pictures (stop 65): every point has the laser's intensity, no colour, on the default walk
+    "office-nir": (["--preset", "office", "--seed", "1", "--scan-colour", "intensity"], [], []),
     # its map takes ~45 min on 2 cores (RESULTS stop 33): --maps builds it only when --sites names it
     "warehouse-s3": (["--preset", "warehouse", "--seed", "3"], ["--spacing", "2"], ["--spacing", "2"]),
 }

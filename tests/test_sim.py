@@ -170,3 +170,43 @@ def test_a_scan_with_a_real_registrations_flaws_has_them(tmp_path):
     _, rgb2 = station(ScanFlaws(gain=0.5))
     ratio = rgb2[rgb0 > 30].astype(float) / rgb0[rgb0 > 30]
     assert np.std(ratio) < 0.2 and abs(np.median(ratio) - 1.0) > 0.02  # one exposure for the whole panorama
+
+
+def test_a_scanner_without_pictures_writes_intensity_that_loads_as_grey(tmp_path):
+    """``--scan-colour intensity``: each point has the laser's return strength instead of a colour; it follows the
+    surface's visible brightness only loosely (each material its own near-infrared gain), carries none of the room's
+    shading, and loads as grey levels spread over the range."""
+    from plyfile import PlyData
+
+    from services.io.scans import load_scan
+    from services.sim.lidar import LidarConfig, simulate_station
+    from services.sim.scenes import make_scene
+    from services.sim.shading import SceneRenderer
+    from services.sim.site import config_for
+
+    cfg = config_for("office", seed=3, frames=2, width=160, height=120, lidar_step_deg=0.8, scan_intensity=True)
+    assert cfg.lidar.intensity_only
+    generate_site(cfg, tmp_path / "nir")
+    names = PlyData.read(str(tmp_path / "nir" / "scan.ply"))["vertex"].data.dtype.names
+    assert "intensity" in names and "red" not in names
+    scan = load_scan(tmp_path / "nir" / "scan.ply")
+    assert scan.meta["has_color"] is False and scan.meta["intensity_grey"] == len(scan)
+    grey = scan.rgb[:, 0].astype(float)
+    assert np.all(scan.rgb[:, :1] == scan.rgb) and np.percentile(grey, 99) - np.percentile(grey, 1) > 150
+
+    # one station, the same rays, in colour and in intensity: the same points, brightness related but not the same
+    scene = make_scene("office", 3)
+    renderer = SceneRenderer(scene.mesh, texture_seed=3)
+    lidar = LidarConfig(step_deg=0.8, dropout=0.0, grazing_cos=1e-9, range_noise_m=0.0, colour_noise=0.0)
+
+    def station(seed):
+        return simulate_station(renderer, scene.stations[0], scene.scan_lighting, 1.0, lidar, np.random.default_rng(0),
+                                intensity_seed=seed)
+
+    xyz0, rgb = station(None)
+    xyz1, intensity = station(3)
+    assert np.array_equal(xyz0, xyz1) and intensity.shape == (len(xyz0),) and intensity.dtype == np.float32
+    assert 0.0 <= intensity.min() and intensity.max() <= 1.0
+    rank = lambda v: np.argsort(np.argsort(v))  # noqa: E731
+    rho = np.corrcoef(rank(rgb.astype(float) @ [0.2126, 0.7152, 0.0722]), rank(intensity))[0, 1]
+    assert 0.2 < rho < 0.95, rho

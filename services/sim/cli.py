@@ -15,6 +15,7 @@ examples:
   cristal sim --preset office --distortion -0.12 0.03 0 0 0 --out lens/   a camera with radial distortion
   cristal sim --preset office --rolling-shutter 20 --out rs/     a phone-like rolling shutter (rows read over 20 ms)
   cristal sim --preset office --scan-flaws survey --out real/    a scan as registration software leaves it
+  cristal sim --preset office --scan-colour intensity --out nir/  a scanner that took no pictures (intensity only)
 
 what you get (docs/CONVENTIONS.md layout):
   site/scan.ply                    colored LiDAR scan, world frame in metres (z up)
@@ -53,6 +54,10 @@ def register(sub) -> None:
                         "shutter); stamps and ground truth are the middle row's")
     p.add_argument("--lidar-step", type=float, dest="lidar_step_deg",
                    help="scanner angular step in degrees (office 0.2, warehouse 0.4); halving it quadruples the points")
+    p.add_argument("--scan-colour", choices=["rgb", "intensity"], default="rgb",
+                   help="rgb: the scanner's camera coloured every point (default); intensity: it took no pictures, "
+                        "each point has the laser's return strength instead (a near-infrared reflectance that follows "
+                        "the visible colours only loosely), as many E57 and LAS exports")
     p.add_argument("--scan-flaws", choices=FLAW_NAMES, default="none",
                    help="what a real registered scan gets wrong: each station registered a little off, its panorama "
                         "exposed and white-balanced apart, mixed pixels floating along silhouettes. survey: 3 mm / "
@@ -87,7 +92,8 @@ def run_sim(args) -> int:
                      width=args.width, height=args.height, hfov_deg=args.hfov_deg,
                      distortion=tuple(args.distortion) if args.distortion else None, lidar_step_deg=args.lidar_step_deg,
                      readout_s=args.rolling_shutter / 1000.0 if args.rolling_shutter else None,
-                     scan_flaws=None if args.scan_flaws == "none" else args.scan_flaws)
+                     scan_flaws=None if args.scan_flaws == "none" else args.scan_flaws,
+                     scan_intensity=args.scan_colour == "intensity")
     t0 = time.perf_counter()
     s = generate_site(cfg, args.out)
     dt = time.perf_counter() - t0

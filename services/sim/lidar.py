@@ -22,7 +22,7 @@ from services.sim.materials import linear_to_srgb
 from services.sim.scenes import Lighting
 from services.sim.shading import SceneRenderer
 
-__all__ = ["LidarConfig", "ScanFlaws", "FLAWS", "simulate_station", "scan_exposure", "misregister", "loose_station"]
+__all__ = ["LidarConfig", "ScanFlaws", "FLAWS", "simulate_station", "scan_exposure", "misregister", "loose_station", "laser_intensity"]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +38,7 @@ class LidarConfig:
     min_range_m: float = 0.4
     max_range_m: float = 80.0
     colour_noise: float = 1.5  # 1-sigma in 8-bit levels
+    intensity_only: bool = False  # a scanner that took no pictures: each point has the laser's intensity, no colour
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,26 @@ def scan_exposure(renderer: SceneRenderer, stations: np.ndarray, lighting: Light
     return float(0.18 / max(np.median(meds), 1e-6)) if meds else 1.0
 
 
+def laser_intensity(renderer: SceneRenderer, centre: np.ndarray, dirs: np.ndarray, tri: np.ndarray, cosi: np.ndarray,
+                    seed: int, rng: np.random.Generator) -> np.ndarray:
+    """The return strength (0..1) of rays ``dirs`` from ``centre`` hitting triangles ``tri`` at incidence cosines
+    ``cosi``: the surface's reflectance at the laser's near-infrared wavelength, which follows its visible albedo
+    only loosely (each material's luminance bent by its own gain and gamma, drawn from ``seed``: paint, wood and
+    fabric that look alike can return apart, and the reverse), times a Lambertian falloff with incidence, with 5 %
+    speckle. Unlit: the laser is its own light, so none of the room's shading is in it."""
+    from services.sim.scenes import Lighting
+
+    albedo, _, _ = renderer.cast(centre, dirs, Lighting(np.zeros((0, 7)), np.ones(3)))
+    lum = albedo @ np.array([0.2126, 0.7152, 0.0722])
+    mats = renderer.mat[np.maximum(tri, 0)]
+    n_mat = int(renderer.mat.max()) + 1
+    mrng = np.random.default_rng([seed, 57])
+    gain, gamma = np.exp(mrng.normal(0.0, 0.35, n_mat)), np.exp(mrng.normal(0.0, 0.25, n_mat))
+    rho = np.clip(gain[mats] * np.maximum(lum, 1e-4) ** gamma[mats], 0.0, 1.0)
+    i = rho * (0.3 + 0.7 * cosi) * np.exp(rng.normal(0.0, 0.05, len(rho)))
+    return np.clip(i, 0.0, 1.0).astype(np.float32)
+
+
 def _mixed_ranges(t: np.ndarray, shape: tuple[int, int], flaws: ScanFlaws, rng: np.random.Generator) -> np.ndarray:
     """Ranges ``t`` (one per ray of the (elevation, azimuth) grid ``shape``; inf where nothing was hit) with
     ``flaws.mixed_pixels`` of the rays on a range edge returning from a random point between their own surface and
@@ -139,10 +160,12 @@ def misregister(xyz: np.ndarray, centre: np.ndarray, flaws: ScanFlaws, rng: np.r
 
 def simulate_station(renderer: SceneRenderer, centre: np.ndarray, lighting: Lighting, exposure: float,
                      cfg: LidarConfig, rng: np.random.Generator, flaws: ScanFlaws | None = None,
-                     flaws_rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     flaws_rng: np.random.Generator | None = None,
+                     intensity_seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Returns (xyz float64 (N,3) world, rgb uint8 (N,3)) of one station's first returns. With ``flaws``: its mixed
     pixels and its panorama's exposure and white balance (drawn from ``flaws_rng``; the registration error is
-    :func:`misregister`'s)."""
+    :func:`misregister`'s). With ``intensity_seed``: a scanner that took no pictures, (xyz, intensity float32 (N,)
+    in 0..1) instead (:func:`laser_intensity`)."""
     dirs = station_directions(cfg)
     rad, t, tri = renderer.cast(centre, dirs, lighting, spread=np.deg2rad(cfg.step_deg), tmax=cfg.max_range_m)
     if flaws is not None and flaws.mixed_pixels > 0:
@@ -156,6 +179,8 @@ def simulate_station(renderer: SceneRenderer, centre: np.ndarray, lighting: Ligh
     keep &= ~(grazing & (rng.random(len(t)) < 0.8 * (1 - cosi / cfg.grazing_cos)))
     r = t[keep] + rng.normal(0.0, cfg.range_noise_m, keep.sum())
     xyz = centre + dirs[keep] * r[:, None]
+    if intensity_seed is not None:
+        return xyz, laser_intensity(renderer, centre, dirs[keep], tri[keep], cosi[keep], intensity_seed, rng)
     gain = np.ones(3)
     if flaws is not None and (flaws.gain or flaws.tint):
         gain = np.exp(flaws_rng.normal(0.0, flaws.gain) + flaws_rng.normal(0.0, flaws.tint, 3))

@@ -83,12 +83,13 @@ def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
     t0 = time.perf_counter()
     exposure = scan_exposure(renderer, scene.stations, scene.scan_lighting, cfg.seed)
     rng = np.random.default_rng([cfg.seed, 1])
-    xyz_parts, rgb_parts, stations = [], [], []
+    xyz_parts, rgb_parts, stations = [], [], []  # (rgb_parts: intensities for a scanner that took no pictures)
+    intensity_seed = cfg.seed if cfg.lidar.intensity_only else None
     loose = loose_station(scene.stations) if (cfg.flaws.loose_m or cfg.flaws.loose_deg) else -1
     for k, c in enumerate(progress(scene.stations, desc="LiDAR stations", total=len(scene.stations), unit="station")):
         frng = np.random.default_rng([cfg.seed, 3, k]) if cfg.flaws.any else None  # (a perfect scan draws as before)
         xyz, rgb = simulate_station(renderer, c, scene.scan_lighting, exposure, cfg.lidar, rng,
-                                    cfg.flaws if cfg.flaws.any else None, frng)
+                                    cfg.flaws if cfg.flaws.any else None, frng, intensity_seed)
         R, centre = np.eye(3), c
         if cfg.flaws.misregistered:
             xyz, R, centre = misregister(xyz, c, cfg.flaws, frng, loose=k == loose)
@@ -96,12 +97,14 @@ def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
         rgb_parts.append(rgb)
         stations.append(Pose(R, centre))  # where the registration put the station
     world = np.concatenate(xyz_parts)
-    scan = Scan(world.astype(np.float32), np.concatenate(rgb_parts), np.zeros(3), stations,
+    intensity = np.concatenate(rgb_parts) if cfg.lidar.intensity_only else None
+    rgb = np.zeros((len(world), 3), np.uint8) if cfg.lidar.intensity_only else np.concatenate(rgb_parts)
+    scan = Scan(world.astype(np.float32), rgb, np.zeros(3), stations,
                 meta={"station_points": [len(x) for x in xyz_parts]})
     del world
     from services.io.scans import save_ply
 
-    save_ply(scan, out / "scan.ply")
+    save_ply(scan, out / "scan.ply", intensity=intensity)
     timings["scan_s"] = time.perf_counter() - t0
     log.info("scan: %d points from %d stations -> %s", len(scan), len(stations), out / "scan.ply")
 
@@ -215,6 +218,8 @@ def config_for(preset: str, **overrides) -> SiteConfig:
         if flaws not in FLAWS:
             raise ValueError(f"unknown scan flaws {flaws!r}; choose from {', '.join(FLAWS)}")
         base = replace(base, flaws=FLAWS[flaws])
+    if overrides.pop("scan_intensity", False):
+        base = replace(base, lidar=replace(base.lidar, intensity_only=True))
     readout = overrides.pop("readout_s", None)
     if readout is not None:
         base = replace(base, sensor=replace(base.sensor, readout_s=float(readout)))
