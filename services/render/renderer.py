@@ -100,6 +100,8 @@ class Renderer:
         self.cfg = cfg
         self.device = _device(device)
         self.origin = scan.origin.copy()
+        # the share of the points grey from the laser's intensity (no colour): its renders agree less with photographs
+        self.intensity_share = float(scan.meta.get("intensity_grey", 0)) / max(1, len(scan))
         t0 = time.perf_counter()
         self.cloud = prepare_cloud(scan)
         if self.device.type == "cuda":
