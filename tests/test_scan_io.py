@@ -169,6 +169,10 @@ def test_e57_intensity_without_colour_becomes_grey(tmp_path):
     assert_grey_from(s, INTENSITY)
     assert scan_info(s)["intensity_grey"] == N
     assert_grey_from(load_scan(p), INTENSITY)  # and from the cache
+    save_ply(s, tmp_path / "converted.ply")  # (scan convert): the grey levels saved as colour, still told apart
+    c = load_scan(tmp_path / "converted.ply")
+    np.testing.assert_array_equal(c.rgb, s.rgb)
+    assert c.meta["has_color"] is True and c.meta["intensity_grey"] == N
 
 
 @pytest.mark.parametrize("name,dtype,scale", [("intensity", "f4", 1.0), ("scalar_Intensity", "f4", 2047.0),

@@ -17,7 +17,7 @@ import numpy as np
 
 from services.geometry.se3 import Pose
 from services.io.scan import Scan, ScanError
-from services.io.scans import CHUNK, STATION_POINTS_TAG, STATION_TAG, PointSink
+from services.io.scans import CHUNK, INTENSITY_TAG, STATION_POINTS_TAG, STATION_TAG, PointSink
 from services.log import progress
 
 __all__ = ["read_ply", "to_uint8"]
@@ -64,7 +64,20 @@ def read_ply(path: Path) -> Scan:
                  n, sink.dropped)
         counts = None
     extra = {} if counts is None else {"station_points": counts}
+    grey = _intensity_share(path, ply.comments) if colour is not None else 0.0
+    if grey:  # written by cristal from a colourless scan: its grey levels came from the laser's intensity
+        extra["intensity_grey"] = int(round(grey * sink.n))
     return sink.scan(path, "ply", stations, has_color=colour is not None, **extra)
+
+
+def _intensity_share(path: Path, comments: list[str]) -> float:
+    for c in comments:
+        if c.split()[:1] == [INTENSITY_TAG]:
+            try:
+                return min(1.0, max(0.0, float(c.split()[1])))
+            except (ValueError, IndexError):
+                log.warning("%s: ignoring a bad '%s' comment", path, INTENSITY_TAG)
+    return 0.0
 
 
 def _station_points(path: Path, comments: list[str]) -> list[int] | None:

@@ -19,7 +19,7 @@ import numpy as np
 
 from services.io.scan import Scan, ScanError
 
-__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY", "intensity_grey"]
+__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY", "intensity_grey", "INTENSITY_TAG"]
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +33,7 @@ INTENSITY_PERCENTILES = (1.0, 99.0)  # a colourless scan's laser intensity betwe
 INTENSITY_MEDIAN_GREY = 0.45  # ... and bent by a gamma that puts its median here (photographs' mid-tones)
 STATION_TAG = "cristal_station"  # PLY comment: "cristal_station tx ty tz qx qy qz qw" (scanner-to-world)
 STATION_POINTS_TAG = "cristal_station_points"  # comment: how many points each station has, in file order
+INTENSITY_TAG = "cristal_intensity_grey"  # comment: the share of the points whose grey came from intensity
 
 
 class PointSink:
@@ -92,7 +93,7 @@ class PointSink:
         ``intensity_grey``: how many points' grey came from the laser's intensity."""
         if self.dropped:
             log.warning("%s: dropped %d non-finite points (NaN/inf coordinates)", path, self.dropped)
-        meta = {"format": fmt, "dropped_nonfinite": self.dropped, **meta, "intensity_grey": 0}
+        meta = {"format": fmt, "dropped_nonfinite": self.dropped, "intensity_grey": 0, **meta}
         if self.grey_runs:
             total = sum(b - a for a, b in self.grey_runs)
             step = max(1, total // 2_000_000)  # the percentiles from ~2 M of them
@@ -210,6 +211,9 @@ def save_ply(scan: Scan, path: str | Path, binary: bool = True, intensity: np.nd
     counts = station_points(scan)
     if counts is not None:
         lines += [f"comment {STATION_POINTS_TAG} " + " ".join(str(c) for c in counts)]
+    grey = min(1.0, scan.meta.get("intensity_grey", 0) / max(1, len(scan)))  # (a decimated scan kept the count)
+    if grey > 0 and intensity is None:  # grey levels from intensity saved as colour: still told apart on reading
+        lines += [f"comment {INTENSITY_TAG} {grey:.4f}"]
     lines += [f"element vertex {len(scan)}"] + [f"property {ftype} {a}" for a in "xyz"]
     channels = [("intensity", "f4", "float")] if intensity is not None else [(c, "u1", "uchar") for c in ("red", "green", "blue")]
     lines += [f"property {t} {c}" for c, _, t in channels] + ["end_header", ""]
