@@ -29,8 +29,8 @@ SUFFIXES = {".ply": "ply", ".e57": "e57", ".las": "las", ".laz": "las"}
 CHUNK = 2_000_000  # points converted at a time: bounds the float64 temporaries to ~50 MB
 LARGE = 1e4  # coordinates beyond this (metres) get an origin, so float32 keeps millimetres
 GREY = 128  # colour given to every point of a scan with neither colour nor intensity when require_color=False
-INTENSITY_PERCENTILES = (1.0, 99.0)  # a colourless scan's laser intensity between these is stretched to 0..255 ...
-INTENSITY_MEDIAN_GREY = 0.45  # ... and bent by a gamma that puts its median here (photographs' mid-tones)
+INTENSITY_WHITE = 99.5  # a colourless scan's laser intensity is white from this percentile on ...
+INTENSITY_GAMMA = 2.2  # ... and encoded with a camera's gamma below it (services.io.scans.intensity_grey)
 STATION_TAG = "cristal_station"  # PLY comment: "cristal_station tx ty tz qx qy qz qw" (scanner-to-world)
 STATION_POINTS_TAG = "cristal_station_points"  # comment: how many points each station has, in file order
 INTENSITY_TAG = "cristal_intensity_grey"  # comment: the share of the points whose grey came from intensity
@@ -113,26 +113,26 @@ class PointSink:
 
 
 def intensity_grey(values: np.ndarray, sample: np.ndarray | None = None) -> np.ndarray | None:
-    """Grey levels (uint8) for a colourless scan's laser intensity ``values`` (any range: scanners write 0..1,
-    0..255, 12 or 16 bits, or signed): the ``INTENSITY_PERCENTILES`` of ``sample`` (default: the values) stretched to
-    0..255 with a gamma putting its median at ``INTENSITY_MEDIAN_GREY`` (a reflectance's spread varies by scanner
-    and site, a photograph's mid-tones less). None when the intensity is one value (a writer that filled the field
-    with zeros)."""
+    """Grey levels (uint8) for a colourless scan's laser intensity ``values``, in whatever range the scanner wrote
+    (0..1, 0..255, 12 or 16 bits): taken as proportional to the surface's reflectance, as a camera's linear signal
+    is, scaled so that the ``INTENSITY_WHITE`` percentile of ``sample`` (default: the values) is white, and encoded
+    with a camera's gamma (``INTENSITY_GAMMA``). A reflectance's ratios stay as a photograph shows them: a stretch
+    between percentiles made a plain wall, the bulk of the points, span black to white (office seed 8). Signed values
+    (dB) are shifted to start at 0. None when the intensity is one value (a writer that filled the field with zeros)."""
     sample = values if sample is None else sample
     finite = sample[np.isfinite(sample)]
     if len(finite) == 0:
         return None
-    lo, mid, hi = np.percentile(finite, [INTENSITY_PERCENTILES[0], 50.0, INTENSITY_PERCENTILES[1]])
+    lo = min(0.0, float(finite.min()))
+    hi = float(np.percentile(finite, INTENSITY_WHITE))
     if hi <= lo:
-        lo, hi = float(finite.min()), float(finite.max())
+        hi = float(finite.max())
         if hi <= lo:
             return None
-    m = float(np.clip((mid - lo) / (hi - lo), 0.02, 0.98))
-    gamma = np.log(INTENSITY_MEDIAN_GREY) / np.log(m)
     out = np.empty(len(values), np.uint8)
     for i in range(0, len(values), CHUNK):
         x = np.clip((np.nan_to_num(values[i:i + CHUNK].astype(np.float32), nan=lo) - lo) / (hi - lo), 0.0, 1.0)
-        out[i:i + CHUNK] = np.rint(255.0 * x ** gamma)
+        out[i:i + CHUNK] = np.rint(255.0 * x ** (1.0 / INTENSITY_GAMMA))
     return out
 
 
