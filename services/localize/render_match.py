@@ -164,9 +164,10 @@ class RMConfig:
     #                                   (office walks, dark and high-ISO copies, the warehouse), 0.28-0.59 with people
     #                                   over 28 % of the frame, 0.41 with a sign over half of it
     intensity_agreement: float = 0.75  # ... times this for a scan grey from the laser's intensity (no colour): its
-    #                                    renders agree less with a photograph at the true pose (office walk at the
-    #                                    truth, every 10th frame: median 0.73 against 0.97 in colour, 10th percentile
-    #                                    0.60 against 0.82; at a pose from the walk's other half 0.00 in both)
+    #                                    renders agree less with a photograph at the true pose (every 10th frame at
+    #                                    the truth: office median 0.75 against 0.97 in colour, 10th percentile 0.58
+    #                                    against 0.82; seed 8 0.80 against 0.93, 0.65 against 0.89; at a pose from the
+    #                                    walk's other half 0.00 in all four, at most 0.14). Office cold 31 -> 36/40
     look_around_s: float = 2.0  # a LOST frame this soon after the last reported pose that no database view places is
     #                             matched to views rendered on demand where its last velocity leads, every way round
     #                             with its own camera (0 = off): the database's 90-degree faces at 1 m spacing and set

@@ -184,7 +184,8 @@ class Renderer:
     def _holefill(self, rgb01: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
         s = self.holefill_scale
         if s >= 1.0:
-            return self.net(rgb01, mask, depth)
+            out = self.net(rgb01, mask, depth)
+            return out.mean(dim=1, keepdim=True).expand_as(out) if self.intensity_share > 0.5 else out
         # the network at reduced resolution; measured pixels keep their full-resolution colour
         H, W = rgb01.shape[-2:]
         size = (max(8, round(H * s)), max(8, round(W * s)))
@@ -194,6 +195,8 @@ class Renderer:
         ms = (m_s > 0.2).float()
         filled = self.net(rgb_s * ms, ms, d_s * ms)
         up = F.interpolate(filled, size=(H, W), mode="bilinear", align_corners=False)
+        if self.intensity_share > 0.5:  # a grey scan's holes filled grey (the network, trained on colour, tints them)
+            up = up.mean(dim=1, keepdim=True).expand_as(up)
         return mask * rgb01 + (1 - mask) * up
 
     def render_batch(self, poses: list[Pose], camera: Camera, stage: str | None = None) -> list[Render]:
