@@ -71,6 +71,7 @@ SITES: dict[str, tuple[list[str], list[str], list[str]]] = {
     "office-loose": (["--preset", "office", "--seed", "1", "--scan-flaws", "loose"], [], []),
     # a scanner that took no pictures (stop 65): every point has the laser's intensity, no colour, on the default walk
     "office-nir": (["--preset", "office", "--seed", "1", "--scan-colour", "intensity"], [], []),
+    "office-s8-nir": (["--preset", "office", "--seed", "8", "--scan-colour", "intensity"], [], []),
     # its map takes ~45 min on 2 cores (RESULTS stop 33): --maps builds it only when --sites names it
     "warehouse-s3": (["--preset", "warehouse", "--seed", "3"], ["--spacing", "2"], ["--spacing", "2"]),
 }
