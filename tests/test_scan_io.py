@@ -192,6 +192,41 @@ def test_ply_intensity_without_colour_becomes_grey(tmp_path, name, dtype, scale)
     assert_grey_from(load_scan(tmp_path / "i.ply"), INTENSITY if scale > 0 else -INTENSITY)
 
 
+def test_blank_colour_fields_give_way_to_the_intensity(tmp_path):
+    """Exports that wrote colour fields without pictures (every point black, or white) but a real intensity: grey from
+    the intensity, in every format; real colours stay colours even where an intensity comes along."""
+    import laspy
+    from plyfile import PlyData, PlyElement
+
+    white = np.full((N, 3), 255, np.uint8)
+    fields = {"cartesianX": ("double", XYZ[:, 0]), "cartesianY": ("double", XYZ[:, 1]),
+              "cartesianZ": ("double", XYZ[:, 2]), "colorRed": (("int", 0, 255), np.zeros(N)),
+              "colorGreen": (("int", 0, 255), np.zeros(N)), "colorBlue": (("int", 0, 255), np.zeros(N)),
+              "intensity": ("double", INTENSITY)}
+    assert_grey_from(load_scan(_write_e57_fields(tmp_path / "black.e57", fields, [1, 0, 0, 0], [0, 0, 0])), INTENSITY)
+    for name, rgb, grey in (("white", white, True), ("colour", RGB, False)):
+        v = np.empty(N, [(a, "f4") for a in "xyz"] + [(c, "u1") for c in ("red", "green", "blue")] + [("intensity", "f4")])
+        for k, a in enumerate("xyz"):
+            v[a] = XYZ[:, k]
+        for k, c in enumerate(("red", "green", "blue")):
+            v[c] = rgb[:, k]
+        v["intensity"] = INTENSITY
+        PlyData([PlyElement.describe(v, "vertex")]).write(str(tmp_path / f"{name}.ply"))
+        s = load_scan(tmp_path / f"{name}.ply")
+        if grey:
+            assert_grey_from(s, INTENSITY)
+        else:
+            np.testing.assert_array_equal(s.rgb, RGB)
+            assert s.meta["has_color"] is True and s.meta["intensity_grey"] == 0
+    las = laspy.create(point_format=3, file_version="1.2")
+    las.header.offsets, las.header.scales = np.floor(XYZ.min(axis=0)), np.array([0.001, 0.001, 0.001])
+    las.x, las.y, las.z = XYZ[:, 0], XYZ[:, 1], XYZ[:, 2]
+    las.red = las.green = las.blue = np.zeros(N, np.uint16)
+    las.intensity = np.rint(INTENSITY * 65535).astype(np.uint16)
+    las.write(str(tmp_path / "black.las"))
+    assert_grey_from(load_scan(tmp_path / "black.las"), INTENSITY)
+
+
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
 def test_las_intensity_without_colour_becomes_grey(tmp_path, suffix):
     import laspy

@@ -17,7 +17,7 @@ import numpy as np
 
 from services.geometry.se3 import Pose
 from services.io.scan import Scan, ScanError
-from services.io.scans import PointSink
+from services.io.scans import ColourChoice, PointSink
 from services.log import progress
 
 __all__ = ["read_e57"]
@@ -49,7 +49,9 @@ def read_e57(path: Path) -> Scan:
             pose = _pose(h) if h.has_pose() else Pose.identity()
             stations.append(pose)
             before = sink.n
-            invalid += _read_one(e57, libe57, h, pose, sink, f"{path.name} scan {i + 1}/{len(headers)}", has_colour[i])
+            dropped, has_colour[i] = _read_one(e57, libe57, h, pose, sink, f"{path.name} scan {i + 1}/{len(headers)}",
+                                               has_colour[i])
+            invalid += dropped
             counts.append(sink.n - before)
     if invalid:
         log.info("%s: dropped %d points the scanner flagged invalid", path, invalid)
@@ -65,15 +67,17 @@ def _pose(h) -> Pose:
     return Pose.from_quat_t(q, t)
 
 
-def _read_one(e57, libe57, h, pose: Pose, sink: PointSink, desc: str, colour: bool) -> int:
-    """Stream one E57 scan into ``sink``; returns the number of invalid points dropped."""
+def _read_one(e57, libe57, h, pose: Pose, sink: PointSink, desc: str, colour: bool) -> tuple[int, bool]:
+    """Stream one E57 scan into ``sink``; returns the number of invalid points dropped, and whether its colour was
+    kept (not blank)."""
     fields = h.point_fields
     coords = CARTESIAN if all(c in fields for c in CARTESIAN) else SPHERICAL if all(c in fields for c in SPHERICAL) else None
     if coords is None:
         raise ScanError(f"scan '{h.node['name'].value() if 'name' in h.scan_fields else '?'}' has neither cartesian "
                         f"nor spherical coordinates (fields: {', '.join(fields)})")
-    grey = not colour and INTENSITY in fields  # no pictures taken: grey from the laser's intensity
-    names = list(coords) + (list(COLOURS) if colour else [INTENSITY] if grey else [])
+    grey = INTENSITY in fields  # where no pictures were taken (no or blank colour): grey from the laser's intensity
+    names = list(coords) + (list(COLOURS) if colour else []) + ([INTENSITY] if grey else [])
+    choice = ColourChoice(desc)
     state = "cartesianInvalidState" if coords is CARTESIAN else "sphericalInvalidState"
     if state in fields:
         names.append(state)
@@ -98,10 +102,10 @@ def _read_one(e57, libe57, h, pose: Pose, sink: PointSink, desc: str, colour: bo
             if colour:
                 rgb = np.stack([bufs[n][:m][keep] for n in COLOURS], axis=1)
                 rgb = np.clip(np.rint(rgb * (255.0 / cmax)), 0, 255).astype(np.uint8)
-            sink.add(local @ R.T + t, rgb, bufs[INTENSITY][:m][keep] if grey else None)
+            sink.add(local @ R.T + t, *choice.pick(rgb, bufs[INTENSITY][:m][keep] if grey else None))
     finally:
         reader.close()
-    return invalid
+    return invalid, colour and not choice.use_intensity
 
 
 def _spherical_to_cartesian(r: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray) -> np.ndarray:

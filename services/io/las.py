@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from services.io.scan import Scan, ScanError
-from services.io.scans import CHUNK, PointSink
+from services.io.scans import CHUNK, ColourChoice, PointSink
 from services.log import progress
 
 __all__ = ["read_las"]
@@ -26,7 +26,8 @@ def read_las(path: Path) -> Scan:
         n = int(f.header.point_count)
         dims = set(f.header.point_format.dimension_names)
         colour = {"red", "green", "blue"} <= dims
-        intensity = not colour and "intensity" in dims  # (every point format has it; a writer may leave it zero)
+        intensity = "intensity" in dims  # (every point format has it; a writer may leave it zero)
+        choice = ColourChoice(path.name)
         sink = PointSink(n)
         shift = None  # 8 for 16-bit colour, 0 for 8-bit; decided on the first chunk
         for pts in progress(f.chunk_iterator(CHUNK), desc=f"reading {path.name}", total=-(-n // CHUNK), unit="chunk"):
@@ -37,7 +38,7 @@ def read_las(path: Path) -> Scan:
                 if shift is None:
                     shift = 8 if len(rgb) and rgb.max() > 255 else 0
                 rgb = (rgb >> shift).astype(np.uint8)
-            sink.add(xyz, rgb, np.asarray(pts.intensity) if intensity else None)
+            sink.add(xyz, *choice.pick(rgb, np.asarray(pts.intensity) if intensity else None))
     if sink.n + sink.dropped != n:
         raise ScanError(f"{path}: truncated LAS file: the header announces {n} points, the file holds {sink.n + sink.dropped}")
-    return sink.scan(path, "las", (), has_color=colour)
+    return sink.scan(path, "las", (), has_color=colour and not choice.use_intensity)

@@ -17,7 +17,7 @@ import numpy as np
 
 from services.geometry.se3 import Pose
 from services.io.scan import Scan, ScanError
-from services.io.scans import CHUNK, INTENSITY_TAG, STATION_POINTS_TAG, STATION_TAG, PointSink
+from services.io.scans import CHUNK, INTENSITY_TAG, STATION_POINTS_TAG, STATION_TAG, ColourChoice, PointSink
 from services.log import progress
 
 __all__ = ["read_ply", "to_uint8"]
@@ -43,7 +43,8 @@ def read_ply(path: Path) -> Scan:
         raise ScanError(f"{path}: the PLY vertices have no {'/'.join(missing)} coordinate (properties: {', '.join(names)})")
     colour = next((c for c in COLOUR_NAMES if all(n in names for n in c)), None)
     lower = {n.lower(): n for n in names}
-    intensity = None if colour is not None else next((lower[n] for n in INTENSITY_NAMES if n in lower), None)
+    intensity = next((lower[n] for n in INTENSITY_NAMES if n in lower), None)
+    choice = ColourChoice(path.name)
     stations = [_station(path, c) for c in ply.comments if c.split()[:1] == [STATION_TAG]]
 
     n = len(data)
@@ -56,7 +57,7 @@ def read_ply(path: Path) -> Scan:
         for k, a in enumerate("xyz"):
             xyz[:, k] = rows[a]
         rgb = None if colour is None else np.stack([to_uint8(rows[c], float_scale) for c in colour], axis=1)
-        sink.add(xyz, rgb, None if intensity is None else rows[intensity])
+        sink.add(xyz, *choice.pick(rgb, None if intensity is None else np.asarray(rows[intensity], np.float32)))
         _release(data)
     counts = _station_points(path, ply.comments)
     if counts is not None and (sink.dropped or sum(counts) != n):
@@ -64,10 +65,10 @@ def read_ply(path: Path) -> Scan:
                  n, sink.dropped)
         counts = None
     extra = {} if counts is None else {"station_points": counts}
-    grey = _intensity_share(path, ply.comments) if colour is not None else 0.0
+    grey = _intensity_share(path, ply.comments) if colour is not None and not choice.use_intensity else 0.0
     if grey:  # written by cristal from a colourless scan: its grey levels came from the laser's intensity
         extra["intensity_grey"] = int(round(grey * sink.n))
-    return sink.scan(path, "ply", stations, has_color=colour is not None, **extra)
+    return sink.scan(path, "ply", stations, has_color=colour is not None and not choice.use_intensity, **extra)
 
 
 def _intensity_share(path: Path, comments: list[str]) -> float:

@@ -19,7 +19,7 @@ import numpy as np
 
 from services.io.scan import Scan, ScanError
 
-__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY", "intensity_grey", "INTENSITY_TAG"]
+__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY", "intensity_grey", "INTENSITY_TAG", "ColourChoice"]
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +110,28 @@ class PointSink:
             self.intensity = None
         origin = np.zeros(3) if self.origin is None else self.origin
         return Scan(self.xyz[:self.n], self.rgb[:self.n], origin, list(stations), path, meta)
+
+
+class ColourChoice:
+    """One scan's colour, or its intensity where its colour fields are blank: one value on every point of the first
+    chunk (an export that wrote the fields without pictures: all black, or all white) while the intensity varies.
+    Decided on the first chunk, then kept: a scan is coloured one way."""
+
+    def __init__(self, desc: str):
+        self.desc = desc
+        self.use_intensity: bool | None = None
+
+    def pick(self, rgb: np.ndarray | None, intensity: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(rgb, None) or (None, intensity) for ``PointSink.add``."""
+        if rgb is None or intensity is None:
+            return rgb, intensity if rgb is None else None
+        if self.use_intensity is None and len(rgb):
+            finite = intensity[np.isfinite(intensity)]
+            self.use_intensity = bool((rgb == rgb[0]).all()) and len(finite) > 0 and finite.max() > finite.min()
+            if self.use_intensity:
+                log.warning("%s: every point has the colour %s (blank colour fields): grey from the laser's intensity "
+                            "instead", self.desc, tuple(int(v) for v in rgb[0]))
+        return (None, intensity) if self.use_intensity else (rgb, None)
 
 
 def intensity_grey(values: np.ndarray, sample: np.ndarray | None = None) -> np.ndarray | None:
