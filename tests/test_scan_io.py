@@ -237,10 +237,11 @@ def test_las_intensity_without_colour_becomes_grey(tmp_path, suffix):
     las.intensity = np.rint(INTENSITY * 65535).astype(np.uint16)
     las.write(str(tmp_path / f"i{suffix}"))
     assert_grey_from(load_scan(tmp_path / f"i{suffix}"), INTENSITY)
-    las.intensity = np.zeros(N, np.uint16)  # a writer that left the field empty: no grey to take from it
-    las.write(str(tmp_path / f"zero{suffix}"))
-    assert_error(tmp_path / f"zero{suffix}", "no colour")
-    assert np.all(load_scan(tmp_path / f"zero{suffix}", require_color=False).rgb == 128)
+    for value in (0, 1000):  # a writer that left the field empty, or filled it with one value: no grey to take
+        las.intensity = np.full(N, value, np.uint16)
+        las.write(str(tmp_path / f"flat{value}{suffix}"))
+        assert_error(tmp_path / f"flat{value}{suffix}", "no colour")
+        assert np.all(load_scan(tmp_path / f"flat{value}{suffix}", require_color=False).rgb == 128)
 
 
 def _write_e57_fields(path, fields, q_wxyz, t, colour_max=None):

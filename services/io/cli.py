@@ -86,7 +86,8 @@ def register(sub) -> None:
                       formatter_class=argparse.RawDescriptionHelpFormatter)
     i.add_argument("scan", metavar="SCAN", help="scan file (.ply, .e57, .las, .laz)")
     i.add_argument("--no-cache", action="store_true", help="parse the file; neither read nor write the cache")
-    i.add_argument("--allow-no-color", action="store_true", help="accept a scan with neither colour nor intensity (flat grey points)")
+    i.add_argument("--allow-no-color", action="store_true", help="accept a scan with neither colour nor intensity "
+                   "(flat grey points)")
     i.set_defaults(func=run_info)
 
     k = ss.add_parser("check", help="how well the scan's stations agree: its registration error (mm)",
@@ -96,7 +97,8 @@ def register(sub) -> None:
     k.add_argument("--sample", type=int, default=20_000, metavar="N", help="points sampled per station (default 20000)")
     k.add_argument("--plot", metavar="OUT.png", help="also draw the stations from above, each pair that shares "
                                                         "surfaces joined in the colour of its disagreement")
-    k.add_argument("--allow-no-color", action="store_true", help="accept a scan with neither colour nor intensity (flat grey points)")
+    k.add_argument("--allow-no-color", action="store_true", help="accept a scan with neither colour nor intensity "
+                   "(flat grey points)")
     k.set_defaults(func=run_check)
 
     c = ss.add_parser("convert", help="convert to PLY, optionally voxel- or randomly thinned",
@@ -112,7 +114,8 @@ def register(sub) -> None:
     c.add_argument("--seed", type=int, default=0, help="random seed for --fraction (default 0)")
     c.add_argument("--ascii", action="store_true", help="write ASCII PLY (large; for inspection)")
     c.add_argument("--no-cache", action="store_true", help="parse the input; neither read nor write its cache")
-    c.add_argument("--allow-no-color", action="store_true", help="accept an input with neither colour nor intensity (flat grey points)")
+    c.add_argument("--allow-no-color", action="store_true", help="accept an input with neither colour nor intensity "
+                   "(flat grey points)")
     c.set_defaults(func=run_convert)
 
 
@@ -132,7 +135,8 @@ def run_info(args) -> int:
           + (" (coordinates stored relative to it)" if any(s["origin"]) else ""))
     grey = s["intensity_grey"]
     print(f"  colour: {'yes' if s['has_color'] else 'no'}"
-          + (f"; {grey:,} points grey from the laser's intensity" if grey else "" if s["has_color"] else " (flat grey)"))
+          + (f"; {grey:,} points grey from the laser's intensity" if grey else
+             "" if s["has_color"] else " (flat grey)"))
     why = level_warning(scan)
     known = station_points(scan) is not None
     print(f"  stations: {len(s['stations'])}" + (", upright (z up)" if scan.stations and not why else "")

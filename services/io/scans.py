@@ -19,7 +19,8 @@ import numpy as np
 
 from services.io.scan import Scan, ScanError
 
-__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY", "intensity_grey", "INTENSITY_TAG", "ColourChoice"]
+__all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY",
+           "intensity_grey", "INTENSITY_TAG", "ColourChoice"]
 
 log = logging.getLogger(__name__)
 
@@ -105,8 +106,8 @@ class PointSink:
                 for (a, b), g in zip(self.grey_runs, greys):
                     self.rgb[a:b] = g[:, None]
                 meta["intensity_grey"] = int(sum(b - a for a, b in self.grey_runs))
-                log.warning("%s: %s points have no colour: grey from the laser's intensity instead (a render of them "
-                            "matches a photograph less well than colour does)", path, f"{meta['intensity_grey']:,}")
+                log.warning("%s: %s points have no colour: grey from the laser's intensity instead (what that changes: "
+                            "docs/TROUBLESHOOTING.md)", path, f"{meta['intensity_grey']:,}")
             self.intensity = None
         origin = np.zeros(3) if self.origin is None else self.origin
         return Scan(self.xyz[:self.n], self.rgb[:self.n], origin, list(stations), path, meta)
@@ -123,8 +124,10 @@ class ColourChoice:
 
     def pick(self, rgb: np.ndarray | None, intensity: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(rgb, None) or (None, intensity) for ``PointSink.add``."""
-        if rgb is None or intensity is None:
-            return rgb, intensity if rgb is None else None
+        if rgb is None:
+            return None, intensity
+        if intensity is None:
+            return rgb, None
         if self.use_intensity is None and len(rgb):
             finite = intensity[np.isfinite(intensity)]
             self.use_intensity = bool((rgb == rgb[0]).all()) and len(finite) > 0 and finite.max() > finite.min()
@@ -143,14 +146,12 @@ def intensity_grey(values: np.ndarray, sample: np.ndarray | None = None) -> np.n
     (dB) are shifted to start at 0. None when the intensity is one value (a writer that filled the field with zeros)."""
     sample = values if sample is None else sample
     finite = sample[np.isfinite(sample)]
-    if len(finite) == 0:
+    if len(finite) == 0 or finite.max() <= finite.min():
         return None
     lo = min(0.0, float(finite.min()))
     hi = float(np.percentile(finite, INTENSITY_WHITE))
-    if hi <= lo:
+    if hi <= lo:  # (most points at the minimum)
         hi = float(finite.max())
-        if hi <= lo:
-            return None
     out = np.empty(len(values), np.uint8)
     for i in range(0, len(values), CHUNK):
         x = np.clip((np.nan_to_num(values[i:i + CHUNK].astype(np.float32), nan=lo) - lo) / (hi - lo), 0.0, 1.0)
@@ -237,7 +238,8 @@ def save_ply(scan: Scan, path: str | Path, binary: bool = True, intensity: np.nd
     if grey > 0 and intensity is None:  # grey levels from intensity saved as colour: still told apart on reading
         lines += [f"comment {INTENSITY_TAG} {grey:.4f}"]
     lines += [f"element vertex {len(scan)}"] + [f"property {ftype} {a}" for a in "xyz"]
-    channels = [("intensity", "f4", "float")] if intensity is not None else [(c, "u1", "uchar") for c in ("red", "green", "blue")]
+    channels = ([("intensity", "f4", "float")] if intensity is not None else
+                [(c, "u1", "uchar") for c in ("red", "green", "blue")])
     lines += [f"property {t} {c}" for c, _, t in channels] + ["end_header", ""]
     dtype = np.dtype([(a, "<" + fdt) for a in "xyz"] + [(c, "<" + d) for c, d, _ in channels])
     values = scan.rgb if intensity is None else np.asarray(intensity, np.float32).reshape(-1, 1)

@@ -22,7 +22,8 @@ from services.sim.materials import linear_to_srgb
 from services.sim.scenes import Lighting
 from services.sim.shading import SceneRenderer
 
-__all__ = ["LidarConfig", "ScanFlaws", "FLAWS", "simulate_station", "scan_exposure", "misregister", "loose_station", "laser_intensity"]
+__all__ = ["LidarConfig", "ScanFlaws", "FLAWS", "simulate_station", "scan_exposure", "misregister", "loose_station",
+           "laser_intensity"]
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +114,6 @@ def laser_intensity(renderer: SceneRenderer, centre: np.ndarray, dirs: np.ndarra
     only loosely (each material's luminance bent by its own gain and gamma, drawn from ``seed``: paint, wood and
     fabric that look alike can return apart, and the reverse), times a Lambertian falloff with incidence, with 5 %
     speckle. Unlit: the laser is its own light, so none of the room's shading is in it."""
-    from services.sim.scenes import Lighting
-
     albedo, _, _ = renderer.cast(centre, dirs, Lighting(np.zeros((0, 7)), np.ones(3)))
     lum = albedo @ np.array([0.2126, 0.7152, 0.0722])
     mats = renderer.mat[np.maximum(tri, 0)]
