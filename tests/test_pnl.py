@@ -514,44 +514,66 @@ def test_a_report_after_a_run_of_uncertain_frames_is_confirmed_by_a_relocalizati
         assert truth[4].distance_to(loc.T_last)[0] < 0.01  # ... but tracked on from
 
 
+def _after_one_uncertain(pnl_site, pnl_map, shrink: float, frames: int = 3, **kw):
+    """A localizer seeded at frame 0's truth whose frame 1 was tracked at ``shrink`` x the gates' 1-sigma (the gates
+    shrunk for that frame alone); then frames 2.. (``frames`` in all) processed as usual: (localizer, their results,
+    their truths)."""
+    import dataclasses
+
+    from services.io.sequence import open_sequence
+    from services.localize.pnl import PnlConfig, PnlLocalizer
+
+    root, out, cam, box = pnl_site
+    seq = open_sequence(out / "seq")
+    images = [seq.read(i) for i in range(frames)]
+    truth = [seq.groundtruth_pose(f.stamp) for f in images]
+    gates = ("max_sigma_m", "max_sigma_deg", "kp_max_sigma_m", "kp_max_sigma_deg")
+    loc = PnlLocalizer.load(pnl_map[0], PnlConfig(confirm_after=5, **kw))
+    loc.seed(truth[0])
+    assert loc.process(images[0].image, cam).T_wc is not None
+    sigma = loc.process(images[1].image, cam)  # (tracked: its 1-sigma decides the gates below)
+    loc = PnlLocalizer.load(pnl_map[0], PnlConfig(confirm_after=5, **kw))
+    loc.seed(truth[0])
+    loc.process(images[0].image, cam)
+    loc.cfg = dataclasses.replace(loc.cfg, max_sigma_m=sigma.sigma_m / shrink, max_sigma_deg=sigma.sigma_deg / shrink,
+                                  kp_max_sigma_m=sigma.sigma_m / shrink, kp_max_sigma_deg=sigma.sigma_deg / shrink)
+    r = loc.process(images[1].image, cam)
+    assert r.T_wc is None and r.reason.startswith("pose too uncertain"), r.reason
+    loc.cfg = dataclasses.replace(loc.cfg, **{g: getattr(PnlConfig(), g) for g in gates})
+    return loc, [loc.process(f.image, cam) for f in images[2:]], truth[2:]
+
+
 def test_a_report_after_one_frame_far_beyond_the_gates_is_confirmed_by_a_relocalization(pnl_site, pnl_map):
     """One tracked frame ``confirm_beyond`` x the gates' 1-sigma means the track slipped: office seed 2's frame 269 (1.8 cm
     / 0.22 deg, an accelerating pan) was followed by frames 270-272 aligned at 0.4-0.6 cm 1-sigma, 2.5-5.4 cm off. The
     next report waits for a relocalization to agree, as after ``confirm_after`` uncertain frames; a frame just over the
     gates (office seed 13's frame 6 at 0.105 deg) asks for none. Here the gates are out of reach for one frame."""
-    import dataclasses
+    from services.localize.pnl import Status
 
-    from services.io.sequence import open_sequence
-    from services.localize.pnl import PnlConfig, PnlLocalizer, Status
-
-    root, out, cam, box = pnl_site
-    seq = open_sequence(out / "seq")
-    frames = [seq.read(i) for i in range(3)]
-    truth = [seq.groundtruth_pose(f.stamp) for f in frames]
-    gates = ("max_sigma_m", "max_sigma_deg", "kp_max_sigma_m", "kp_max_sigma_deg")
-
-    def after_one_uncertain(shrink: float, **kw):
-        loc = PnlLocalizer.load(pnl_map[0], PnlConfig(confirm_after=5, **kw))
-        loc.seed(truth[0])
-        assert loc.process(frames[0].image, cam).T_wc is not None
-        sigma = loc.process(frames[1].image, cam)  # (tracked: its 1-sigma decides the gates below)
-        loc = PnlLocalizer.load(pnl_map[0], PnlConfig(confirm_after=5, **kw))
-        loc.seed(truth[0])
-        loc.process(frames[0].image, cam)
-        loc.cfg = dataclasses.replace(loc.cfg, max_sigma_m=sigma.sigma_m / shrink, max_sigma_deg=sigma.sigma_deg / shrink,
-                                      kp_max_sigma_m=sigma.sigma_m / shrink, kp_max_sigma_deg=sigma.sigma_deg / shrink)
-        r = loc.process(frames[1].image, cam)
-        assert r.T_wc is None and r.reason.startswith("pose too uncertain"), r.reason
-        loc.cfg = dataclasses.replace(loc.cfg, **{g: getattr(PnlConfig(), g) for g in gates})
-        return loc, loc.process(frames[2].image, cam)
-
-    loc, r = after_one_uncertain(3.0)  # far beyond: a relocalization agrees, the pose is reported
-    assert r.status == Status.TRACKING and "confirm_ms" in r.timings and truth[2].distance_to(r.T_wc)[0] < 0.01, r
-    loc, r = after_one_uncertain(1.5)  # just over the gates: no confirmation asked for
+    loc, (r,), (truth,) = _after_one_uncertain(pnl_site, pnl_map, 3.0)  # far beyond: a relocalization agrees, reported
+    assert r.status == Status.TRACKING and "confirm_ms" in r.timings and truth.distance_to(r.T_wc)[0] < 0.01, r
+    loc, (r,), _ = _after_one_uncertain(pnl_site, pnl_map, 1.5)  # just over the gates: no confirmation asked for
     assert r.status == Status.TRACKING and "confirm_ms" not in r.timings, r
-    loc, r = after_one_uncertain(3.0, reloc_min_inliers=10**6)  # far beyond, nothing to agree: not reported, tracked on
+    # far beyond, nothing to agree: not reported, tracked on
+    loc, (r,), (truth,) = _after_one_uncertain(pnl_site, pnl_map, 3.0, reloc_min_inliers=10**6)
     assert r.T_wc is None and r.reason.startswith("pose not confirmed after 1 uncertain frame (relocalization: "), r.reason
-    assert truth[2].distance_to(loc.T_last)[0] < 0.01
+    assert truth.distance_to(loc.T_last)[0] < 0.01
+
+
+def test_a_track_no_relocalization_can_check_is_reported_after_a_run_of_good_frames(pnl_site, pnl_map):
+    """Where relocalization finds no place at all, frame after frame (a map from a scan in laser intensity: its ORB
+    descriptors seldom match a photograph; office seed 8 in intensity tracked frames 2-60 within 0.1-1.3 cm, 1-sigma
+    within the gates, and reported none), a track that stays good for ``confirm_unopposed`` frames in a row is
+    reported: nothing says otherwise. A relocalization that disagrees, or rival places, start the count again."""
+    from services.localize.pnl import Status
+
+    loc, results, truths = _after_one_uncertain(pnl_site, pnl_map, 3.0, frames=6, reloc_min_inliers=10**6,
+                                                confirm_unopposed=3)
+    assert [r.T_wc is None for r in results] == [True, True, False, False], [r.reason for r in results]
+    assert results[1].reason.startswith("pose not confirmed after 2 uncertain frames"), results[1].reason
+    assert results[2].status == Status.TRACKING and all(t.distance_to(r.T_wc)[0] < 0.01 for r, t in zip(results[2:], truths[2:]))
+    loc, results, _ = _after_one_uncertain(pnl_site, pnl_map, 3.0, frames=6, reloc_min_inliers=10**6, confirm_unopposed=0)
+    assert all(r.T_wc is None for r in results)  # (0: off, as before)
 
 
 def _text_strip(img: np.ndarray, seed: int, share: float = 0.15) -> np.ndarray:

@@ -135,6 +135,11 @@ class PnlConfig:
     confirm_beyond: float = 2.0  # ... and so is one after a single tracked frame this many times the gates' 1-sigma: its
     #                              track had slipped (office seed 2: frame 269 at 1.8 cm / 0.22 deg in an accelerating
     #                              pan, then 270-272 aligned at 0.4-0.6 cm 1-sigma, 2.5-5.4 cm off)
+    confirm_unopposed: int = 30  # ... or, with no relocalization to agree, once this many good tracked frames in a row
+    #                              went unopposed (no place found: neither a pose elsewhere nor rival places; 0 = never):
+    #                              a map whose descriptors seldom match the frames (an intensity scan's, office seed 8:
+    #                              frames 2-60 tracked 0.1-1.3 cm off, 1-sigma within the gates, none reported;
+    #                              73 -> 126/300 frames, none off; no colour walk nor the warehouse ever gets there)
     confirm_m: float = 0.03
     confirm_deg: float = 0.5
     reloc_ambiguity: float = 0.8  # another place with this share of the best's inliers makes a relocalization ambiguous,
@@ -378,6 +383,7 @@ class _Frame:
     inv_sigma2: np.ndarray | None = None  # (N,) 1 / scale^(2 octave)
     gray: np.ndarray | None = None  # undistorted grey float32, for patch alignment (see PnlLocalizer._gray)
     reason: str | None = None  # why this frame has no pose, when it has none
+    rivals: bool = False  # its relocalization found places about as good as each other (a repetitive site)
     spare: tuple | None = None  # the most certain aligned solution tracking found that was not good (PnlLocalizer._spare)
     unchecked: bool = False  # its pose came from an untracked prediction and nothing could check it (PnlLocalizer._checked)
     relocalized: bool = False  # ... or a relocalization replaced that pose (PnlLocalizer._checked)
@@ -432,6 +438,7 @@ class PnlLocalizer:
         self._sigma_last = 0.0  # the last tracked pose's position 1-sigma (m)
         self._unsure = 0  # tracked frames in a row since the last reported pose that were too uncertain to report
         self._slipped = False  # ... one of them far beyond the gates, or tracked from an unchecked prediction: confirm
+        self._unopposed = 0  # good tracked frames in a row awaiting confirmation that no relocalization opposed
         self.shutter = ShutterTrack()  # whether a rolling shutter's frames may be reported yet
         self._near: tuple[np.ndarray, float, float | None, int] | None = None  # hint: position, radius, stamp, frames since
         self._tracked = False  # whether ``T_last`` is a tracked frame's pose or a seed (not a carried or a relocalized one)
@@ -476,7 +483,7 @@ class PnlLocalizer:
         self._vel = None
         self._tracked = False
         self._near = None
-        self._unsure, self._slipped = 0, False
+        self._unsure, self._slipped, self._unopposed = 0, False, 0
         self._sigma_last = 0.0
         self.shutter.reset()
         self.carry.reset()
@@ -494,7 +501,7 @@ class PnlLocalizer:
         self.T_last = T_wc
         self._tracked = True  # (a server's pose: as good as a tracked one; with no velocity the next frame is checked)
         self._stamp = stamp
-        self._unsure, self._slipped = 0, False
+        self._unsure, self._slipped, self._unopposed = 0, False, 0
         self._sigma_last = 0.0  # (the server's pose: its own 1-sigma is not handed over)
         self.carry.reset()
 
@@ -1047,6 +1054,7 @@ class PnlLocalizer:
         r = self._contest(fr, results, tm)
         if r is None:
             fr.reason = f"ambiguous place: {why}"
+            fr.rivals = True
             log.info("relocalization %s", fr.reason)
         return r
 
@@ -1232,7 +1240,7 @@ class PnlLocalizer:
                                           self.cfg.velocity_carry_s if coast else None)
             if not coast or self.T_last is None:
                 self._vel = None
-            self._unsure, self._slipped = 0, False
+            self._unsure, self._slipped, self._unopposed = 0, False, 0
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm,
                              reason=fr.reason or "no pose")
         R, t, n, rmse, sig_m, sig_deg, _ = r
@@ -1251,8 +1259,12 @@ class PnlLocalizer:
         if (self._good(r, fr) and rs_settled and status == Status.TRACKING and prior is None
                 and 0 < self.cfg.confirm_after and (self.cfg.confirm_after <= self._unsure or self._slipped)):
             t0 = time.perf_counter()
-            unconfirmed = self._confirm(fr, T_wc)
+            unconfirmed, unopposed = self._confirm(fr, T_wc)
             tm["confirm_ms"] = 1e3 * (time.perf_counter() - t0)
+            self._unopposed = self._unopposed + 1 if unopposed else 0
+            if unconfirmed is not None and 0 < self.cfg.confirm_unopposed <= self._unopposed:
+                log.debug("a pose good for %d frames that no relocalization opposes: reported", self._unopposed)
+                unconfirmed = None
         if fr.unchecked and self._good(r, fr):  # tracked on from, reported once a relocalization agrees with a later frame
             unconfirmed = ("pose away from where the motion leads, and a relocalization disagrees with it (tracked on "
                            "from the relocalization)" if fr.relocalized else
@@ -1261,6 +1273,8 @@ class PnlLocalizer:
         if unconfirmed is not None or not self._good(r, fr) or not rs_settled:  # not reported, but tracked from
             self.T_last = T_wc
             self._unsure += 1
+            if not self._good(r, fr):  # (unopposed only while good in a row)
+                self._unopposed = 0
             self._slipped |= fr.unchecked or not self._within(r, fr, self.cfg.confirm_beyond * self.cfg.max_sigma_m,
                                                                self.cfg.confirm_beyond * self.cfg.max_sigma_deg)
             if unconfirmed is not None:
@@ -1268,7 +1282,7 @@ class PnlLocalizer:
             return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg,
                              f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)"
                              if not self._good(r, fr) else NOT_UNDONE)
-        self.T_last, self._near, self._unsure, self._slipped = T_wc, None, 0, False
+        self.T_last, self._near, self._unsure, self._slipped, self._unopposed = T_wc, None, 0, False, 0
         if self.cfg.scan_sigma_m:
             sig_m, sig_deg = with_scan_error(sig_m, sig_deg, *self._view_floor(T_wc))
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
@@ -1289,17 +1303,21 @@ class PnlLocalizer:
                                  median_depth((P - kf.t) @ kf.R))
         return self._kf_floor[k]
 
-    def _confirm(self, fr: _Frame, T_wc: Pose) -> str | None:
+    def _confirm(self, fr: _Frame, T_wc: Pose) -> tuple[str | None, bool]:
         """Whether a tracked pose ``T_wc`` after a run of poses too uncertain to report (``_unsure``) agrees with a
-        relocalization of the frame: None when it does, else why not. Either can be the wrong one (a turn along a plain wall fits poses
-        sliding along it: office seed 8 frame 282 tracked 55 cm off, frame 187 relocalized 18 cm off), so a
-        disagreement, or no relocalization to agree, leaves the frame unreported, tracked on from its tracked pose."""
+        relocalization of the frame: (None when it does, else why not; whether nothing opposes it: the relocalization
+        found no place, neither rival places nor a pose elsewhere). Either can be the wrong one (a turn along a plain
+        wall fits poses sliding along it: office seed 8 frame 282 tracked 55 cm off, frame 187 relocalized 18 cm off),
+        so a disagreement, or no relocalization to agree, leaves the frame unreported, tracked on from its tracked
+        pose, until ``confirm_unopposed`` good frames in a row went unopposed."""
         c = self._relocalize(fr, {})
-        if not self._good(c, fr):
+        dt, dr = T_wc.distance_to(Pose(c[0].T, -c[0].T @ c[1])) if self._plausible(c) else (np.inf, np.inf)
+        agrees = dt <= self.cfg.confirm_m and dr <= self.cfg.confirm_deg
+        if not self._good(c, fr):  # unopposed: no place found at all, or one that agrees but too uncertain to report
             return (f"pose not confirmed after {self._unsure} uncertain frame{'s' * (self._unsure != 1)} "
-                    f"(relocalization: {fr.reason or 'no pose to report'})")
-        dt, dr = T_wc.distance_to(Pose(c[0].T, -c[0].T @ c[1]))
-        if dt <= self.cfg.confirm_m and dr <= self.cfg.confirm_deg:
-            return None
+                    f"(relocalization: {fr.reason or 'no pose to report'})",
+                    not fr.rivals and (agrees or not self._plausible(c)))
+        if agrees:
+            return None, False
         return (f"pose not confirmed after {self._unsure} uncertain frame{'s' * (self._unsure != 1)} "
-                f"(a relocalization is {100 * dt:.0f} cm / {dr:.1f} deg away)")
+                f"(a relocalization is {100 * dt:.0f} cm / {dr:.1f} deg away)", False)
