@@ -192,6 +192,23 @@ def test_ply_intensity_without_colour_becomes_grey(tmp_path, name, dtype, scale)
     assert_grey_from(load_scan(tmp_path / "i.ply"), INTENSITY if scale > 0 else -INTENSITY)
 
 
+def test_e57_scans_with_and_without_colour_mix_colour_and_grey_from_intensity(tmp_path):
+    """One station's export with pictures, another's without: each point keeps what its scan has."""
+    import pye57
+
+    path = tmp_path / "mixed.e57"
+    with pye57.E57(str(path), mode="w") as e:
+        e.write_scan_raw({"cartesianX": XYZ[:300, 0], "cartesianY": XYZ[:300, 1], "cartesianZ": XYZ[:300, 2],
+                          "colorRed": RGB[:300, 0], "colorGreen": RGB[:300, 1], "colorBlue": RGB[:300, 2]})
+        e.write_scan_raw({"cartesianX": XYZ[300:, 0], "cartesianY": XYZ[300:, 1], "cartesianZ": XYZ[300:, 2],
+                          "intensity": INTENSITY[300:]})
+    s = load_scan(path)
+    np.testing.assert_array_equal(s.rgb[:300], RGB[:300])
+    assert s.meta["has_color"] is True and s.meta["intensity_grey"] == N - 300
+    g = s.rgb[300:, 0]
+    assert np.all(s.rgb[300:, :1] == s.rgb[300:]) and g.min() < 30 and g.max() > 225
+
+
 def test_blank_colour_fields_give_way_to_the_intensity(tmp_path):
     """Exports that wrote colour fields without pictures (every point black, or white) but a real intensity: grey from
     the intensity, in every format; real colours stay colours even where an intensity comes along."""
