@@ -20,7 +20,7 @@ import numpy as np
 from services.io.scan import Scan, ScanError
 
 __all__ = ["load_scan", "save_ply", "scan_info", "station_points", "READER_VERSION", "SUFFIXES", "PointSink", "GREY",
-           "intensity_grey", "INTENSITY_TAG", "ColourChoice"]
+           "intensity_scale", "intensity_grey", "INTENSITY_TAG", "ColourChoice"]
 
 log = logging.getLogger(__name__)
 
@@ -98,13 +98,12 @@ class PointSink:
         if self.grey_runs:
             total = sum(b - a for a, b in self.grey_runs)
             step = max(1, total // 2_000_000)  # the percentiles from ~2 M of them
-            sample = np.concatenate([self.intensity[a:b:step] for a, b in self.grey_runs])
-            greys = [intensity_grey(self.intensity[a:b], sample) for a, b in self.grey_runs]
-            if greys[0] is None:
+            scale = intensity_scale(np.concatenate([self.intensity[a:b:step] for a, b in self.grey_runs]))
+            if scale is None:
                 log.warning("%s: the scan has no colour and its intensity is one value: its points are flat grey", path)
             else:
-                for (a, b), g in zip(self.grey_runs, greys):
-                    self.rgb[a:b] = g[:, None]
+                for a, b in self.grey_runs:
+                    self.rgb[a:b] = intensity_grey(self.intensity[a:b], scale)[:, None]
                 meta["intensity_grey"] = int(sum(b - a for a, b in self.grey_runs))
                 log.warning("%s: %s points have no colour: grey from the laser's intensity instead (what that changes: "
                             "docs/TROUBLESHOOTING.md)", path, f"{meta['intensity_grey']:,}")
@@ -137,21 +136,24 @@ class ColourChoice:
         return (None, intensity) if self.use_intensity else (rgb, None)
 
 
-def intensity_grey(values: np.ndarray, sample: np.ndarray | None = None) -> np.ndarray | None:
-    """Grey levels (uint8) for a colourless scan's laser intensity ``values``, in whatever range the scanner wrote
-    (0..1, 0..255, 12 or 16 bits): taken as proportional to the surface's reflectance, as a camera's linear signal
-    is, scaled so that the ``INTENSITY_WHITE`` percentile of ``sample`` (default: the values) is white, and encoded
-    with a camera's gamma (``INTENSITY_GAMMA``). A reflectance's ratios stay as a photograph shows them: a stretch
-    between percentiles made a plain wall, the bulk of the points, span black to white (office seed 8). Signed values
-    (dB) are shifted to start at 0. None when the intensity is one value (a writer that filled the field with zeros)."""
-    sample = values if sample is None else sample
+def intensity_scale(sample: np.ndarray) -> tuple[float, float] | None:
+    """(black, white) for a colourless scan's laser intensity, from a ``sample`` of it in whatever range the scanner
+    wrote (0..1, 0..255, 12 or 16 bits, signed dB): 0, or the minimum where values go below it, and the
+    ``INTENSITY_WHITE`` percentile. None when the intensity is one value (a writer that filled the field with zeros)."""
     finite = sample[np.isfinite(sample)]
     if len(finite) == 0 or finite.max() <= finite.min():
         return None
     lo = min(0.0, float(finite.min()))
     hi = float(np.percentile(finite, INTENSITY_WHITE))
-    if hi <= lo:  # (most points at the minimum)
-        hi = float(finite.max())
+    return lo, hi if hi > lo else float(finite.max())  # (most points at the minimum: white at the maximum)
+
+
+def intensity_grey(values: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
+    """Grey levels (uint8) for laser intensity ``values`` between ``scale``'s black and white
+    (:func:`intensity_scale`): taken as proportional to the surface's reflectance, as a camera's linear signal is, and
+    encoded with a camera's gamma (``INTENSITY_GAMMA``). A reflectance's ratios stay as a photograph shows them: a
+    stretch between percentiles made a plain wall, the bulk of the points, span black to white (office seed 8)."""
+    lo, hi = scale
     out = np.empty(len(values), np.uint8)
     for i in range(0, len(values), CHUNK):
         x = np.clip((np.nan_to_num(values[i:i + CHUNK].astype(np.float32), nan=lo) - lo) / (hi - lo), 0.0, 1.0)

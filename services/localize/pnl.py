@@ -483,10 +483,14 @@ class PnlLocalizer:
         self._vel = None
         self._tracked = False
         self._near = None
-        self._unsure, self._slipped, self._unopposed = 0, False, 0
+        self._trusted()
         self._sigma_last = 0.0
         self.shutter.reset()
         self.carry.reset()
+
+    def _trusted(self) -> None:
+        """No doubt carried over (a pose reported or given, or none left to doubt): an uncertain run counts anew."""
+        self._unsure, self._slipped, self._unopposed = 0, False, 0
 
     def seed(self, T_wc: Pose, stamp: float | None = None) -> None:
         """Start tracking from an external pose (e.g. a server answer) for the frame captured at ``stamp`` (seconds).
@@ -501,7 +505,7 @@ class PnlLocalizer:
         self.T_last = T_wc
         self._tracked = True  # (a server's pose: as good as a tracked one; with no velocity the next frame is checked)
         self._stamp = stamp
-        self._unsure, self._slipped, self._unopposed = 0, False, 0
+        self._trusted()
         self._sigma_last = 0.0  # (the server's pose: its own 1-sigma is not handed over)
         self.carry.reset()
 
@@ -1240,7 +1244,7 @@ class PnlLocalizer:
                                           self.cfg.velocity_carry_s if coast else None)
             if not coast or self.T_last is None:
                 self._vel = None
-            self._unsure, self._slipped, self._unopposed = 0, False, 0
+            self._trusted()
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm,
                              reason=fr.reason or "no pose")
         R, t, n, rmse, sig_m, sig_deg, _ = r
@@ -1282,7 +1286,8 @@ class PnlLocalizer:
             return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg,
                              f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)"
                              if not self._good(r, fr) else NOT_UNDONE)
-        self.T_last, self._near, self._unsure, self._slipped, self._unopposed = T_wc, None, 0, False, 0
+        self.T_last, self._near = T_wc, None
+        self._trusted()
         if self.cfg.scan_sigma_m:
             sig_m, sig_deg = with_scan_error(sig_m, sig_deg, *self._view_floor(T_wc))
         return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
@@ -1313,11 +1318,10 @@ class PnlLocalizer:
         c = self._relocalize(fr, {})
         dt, dr = T_wc.distance_to(Pose(c[0].T, -c[0].T @ c[1])) if self._plausible(c) else (np.inf, np.inf)
         agrees = dt <= self.cfg.confirm_m and dr <= self.cfg.confirm_deg
+        why = f"pose not confirmed after {self._unsure} uncertain frame{'s' * (self._unsure != 1)}"
         if not self._good(c, fr):  # unopposed: no place found at all, or one that agrees but too uncertain to report
-            return (f"pose not confirmed after {self._unsure} uncertain frame{'s' * (self._unsure != 1)} "
-                    f"(relocalization: {fr.reason or 'no pose to report'})",
+            return (f"{why} (relocalization: {fr.reason or 'no pose to report'})",
                     not fr.rivals and (agrees or not self._plausible(c)))
         if agrees:
             return None, False
-        return (f"pose not confirmed after {self._unsure} uncertain frame{'s' * (self._unsure != 1)} "
-                f"(a relocalization is {100 * dt:.0f} cm / {dr:.1f} deg away)", False)
+        return f"{why} (a relocalization is {100 * dt:.0f} cm / {dr:.1f} deg away)", False

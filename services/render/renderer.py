@@ -184,8 +184,7 @@ class Renderer:
     def _holefill(self, rgb01: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
         s = self.holefill_scale
         if s >= 1.0:
-            out = self.net(rgb01, mask, depth)
-            return out.mean(dim=1, keepdim=True).expand_as(out) if self.intensity_share > 0.5 else out
+            return self._net_fill(rgb01, mask, depth)
         # the network at reduced resolution; measured pixels keep their full-resolution colour
         H, W = rgb01.shape[-2:]
         size = (max(8, round(H * s)), max(8, round(W * s)))
@@ -193,11 +192,14 @@ class Renderer:
         rgb_s = F.adaptive_avg_pool2d(rgb01, size) / m_s.clamp_min(1e-6)
         d_s = F.adaptive_avg_pool2d(depth, size) / m_s.clamp_min(1e-6)
         ms = (m_s > 0.2).float()
-        filled = self.net(rgb_s * ms, ms, d_s * ms)
+        filled = self._net_fill(rgb_s * ms, ms, d_s * ms)
         up = F.interpolate(filled, size=(H, W), mode="bilinear", align_corners=False)
-        if self.intensity_share > 0.5:  # a grey scan's holes filled grey (the network, trained on colour, tints them)
-            up = up.mean(dim=1, keepdim=True).expand_as(up)
         return mask * rgb01 + (1 - mask) * up
+
+    def _net_fill(self, rgb01: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        out = self.net(rgb01, mask, depth)
+        # a grey scan's holes filled grey (the network, trained on colour, tints them)
+        return out.mean(dim=1, keepdim=True).expand_as(out) if self.intensity_share > 0.5 else out
 
     def render_batch(self, poses: list[Pose], camera: Camera, stage: str | None = None) -> list[Render]:
         """Several views with the same intrinsics (cubemaps, many clients). Shares the prepared scan."""
