@@ -187,6 +187,9 @@ class RMConfig:
     #                                 third (degrees) of it: chance fits do not repeat from frame to frame, the right
     #                                 place does (office walk, the rack close-up after the whip pan, frames 286-295:
     #                                 25-29 inliers a frame, every one 1-3.5 cm / 0.7-1.9 deg from the truth)
+    velocity_window_s: float = 0.3  # the velocity a LOST frame's search follows: the mean over the poses reported this
+    #                                 long before (s), not the last step alone (two poses 33 ms apart, each 0.3 cm
+    #                                 off, give a velocity 0.1-0.3 m/s off, carried for up to look_around_s)
     gap_motion_s: float = 0.5  # after a relocalization this soon after the last good pose, assume the motion between them
     recover_s: float = 1.5  # after LOST, first try to re-acquire at the last good pose for this long (s; frames/30 without stamps)
     odometry_carry_s: float = 5.0  # with the device's odometry (``motion``), a LOST frame's pose is carried on by it for up to
@@ -478,6 +481,7 @@ class RenderMatchTracker:
         self._lose()
         self.recent: tuple[Pose, float | None] | None = None  # last good pose and its stamp, kept while LOST
         self.anchor: _Anchor | None = None  # where the camera was last known to be (a reported pose or a caller's hint)
+        self.trail: list[tuple[float, np.ndarray]] = []  # (stamp, position) of the poses reported within velocity_window_s
         self.recover_kf: Keyframe | None = None  # a render at ``recent`` (valid while its pose is recent's), reused while re-acquiring
         self.verify_kfs: list[Keyframe] = []  # renders made to verify relocalizations while LOST (newest last; _reusable)
         self.around: tuple[np.ndarray, Camera, RelocDB] | None = None  # views rendered by _look_around: (where, for which camera, them)
@@ -1497,6 +1501,11 @@ class RenderMatchTracker:
             if self.motion is not None and status == Status.TRACKING and consecutive:
                 v = (r.T_wc.t - T_prev.t) / self.motion[1]
                 v = v if np.linalg.norm(v) <= self.cfg.max_speed_mps else None
+            self.trail = [(s, p) for s, p in self.trail if 0 < stamp - s <= self.cfg.velocity_window_s]
+            if v is not None and self.trail and stamp - self.trail[0][0] > 1.5 * self.motion[1]:
+                v_mean = (r.T_wc.t - self.trail[0][1]) / (stamp - self.trail[0][0])
+                v = v_mean if np.linalg.norm(v_mean) <= self.cfg.max_speed_mps else v
+            self.trail.append((stamp, r.T_wc.t))
             a = self.anchor
             if (v is None and not cold and a is not None and not a.hint and a.stamp is not None
                     and 0 < stamp - a.stamp <= self.cfg.gap_motion_s):
