@@ -129,7 +129,8 @@ class RelocDB:
             if r is not None:
                 out.append((r, int(v)))
         if pooled and len(pool) > 1:
-            idx = np.concatenate([k for k, _ in pool]); X = np.concatenate([x for _, x in pool])
+            idx = np.concatenate([k for k, _ in pool])  # (frame keypoint, world point) of every view's matches
+            X = np.concatenate([x for _, x in pool])
             out = [(_pooled(r, feats.kpts, idx, X, camera, max_error_px), v) for r, v in out]
         return [(r, v) for r, v in out if r.n_inliers >= min_inliers]
 
