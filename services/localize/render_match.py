@@ -168,12 +168,6 @@ class RMConfig:
     #                                    the truth: office median 0.75 against 0.97 in colour, 10th percentile 0.58
     #                                    against 0.82; seed 8 0.80 against 0.93, 0.65 against 0.89; at a pose from the
     #                                    walk's other half 0.00 in all four, at most 0.14). Office cold 31 -> 36/40
-    reloc_pooled: bool = False  # a coarse pose counted (and solved again) over the matches of every view searched, each
-    #                             frame keypoint once, not its own view's alone (services.relocalize.database._pooled).
-    #                             Measured, not on (stop 66): cold relocalization the same over seven offices (214 of
-    #                             280 frames either way); the office walk 270 -> 278 (its rack close-up, frame 290,
-    #                             placed by a pooled cold search), the warehouse 220 -> 248 but a tracked frame 5.8 cm
-    #                             off, and every other walk moved by chance (-4 .. +5)
     look_around_s: float = 2.0  # a LOST frame this soon after the last reported pose that no database view places is
     #                             matched to views rendered on demand where its last velocity leads, every way round
     #                             with its own camera (0 = off): the database's 90-degree faces at 1 m spacing and set
@@ -1108,11 +1102,10 @@ class RenderMatchTracker:
         within = None if reach is None else (reach[0], reach[1] + 0.5)  # coarse poses are a few decimetres off
 
         def search(feats: Features) -> list[tuple[PnpResult, int]]:
-            hyps = db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within,
-                                 pooled=cfg.reloc_pooled)
+            hyps = db.hypotheses(feats, fr.camera, cfg.reloc_candidates, floor, near=near, within=within)
             if (not hyps or hyps[0][0].n_inliers < need) and cfg.reloc_widen > cfg.reloc_candidates:
                 hyps = db.hypotheses(feats, fr.camera, cfg.reloc_widen, floor, near=near, within=within,
-                                     known=hyps, skip=cfg.reloc_candidates, pooled=cfg.reloc_pooled)
+                                     known=hyps, skip=cfg.reloc_candidates)
             return hyps
 
         hyps = search(feats)
@@ -1199,7 +1192,7 @@ class RenderMatchTracker:
 
         rival = db.has_rival(feats, fr.camera, coarse, cfg.reloc_candidates, check,
                              ambiguity=ambiguity, near=near, within=within, far_ambiguity=far, verify=verify,
-                             verify_far=far_verify, pooled=cfg.reloc_pooled)
+                             verify_far=far_verify)
         fr.tm["relocalize_ms"] += 1e3 * (time.perf_counter() - t0)
         if rival:
             fr.reason = f"ambiguous place: {rival}"

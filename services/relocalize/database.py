@@ -27,7 +27,7 @@ import numpy as np
 from services.features.matching import mutual_nn
 from services.features.xfeat import Features, XFeatExtractor
 from services.geometry.camera import Camera
-from services.geometry.pnp import PnpResult, reprojection_errors, solve_pnp, undistort_pixels
+from services.geometry.pnp import PnpResult, solve_pnp
 from services.geometry.se3 import Pose
 from services.io.atomic import atomic_write
 from services.log import progress
@@ -109,30 +109,20 @@ class RelocDB:
         return order[inside[order]][:k]
 
     def _solve_views(self, feats: Features, camera: Camera, views, min_inliers: int,
-                     max_error_px: float, pooled: bool = False) -> list[tuple[PnpResult, int]]:
-        """Coarse poses of the query from each of ``views`` with at least ``min_inliers`` inliers. ``pooled``: each
-        pose counted (and solved again) over the matches of every view searched, not its own view's alone
-        (:func:`_pooled`); a view is solved from POOL_MIN_VIEW matches then."""
-        out, pool = [], []
-        solve_from = min(min_inliers, POOL_MIN_VIEW) if pooled else min_inliers
+                     max_error_px: float) -> list[tuple[PnpResult, int]]:
+        out = []
         for v in views:
             xyz, desc = self.view(v)
             m = mutual_nn(feats.desc, desc, min_cos=0.8, device=self.match_device)
-            if len(m):
-                pool.append((m[:, 0], xyz[m[:, 1]]))
-            if len(m) < solve_from:
+            if len(m) < min_inliers:
                 continue
             # hard RANSAC counts, not the soft refinement's: these counts decide which places are rivals, and a soft
             # solve over every match within 5 thresholds lifts a wrong place's count too (test site: two places 7 m
             # off reached half the true one's and made a clean frame ambiguous). The refined pose comes later.
             r = solve_pnp(feats.kpts[m[:, 0]], xyz[m[:, 1]], camera, max_error_px=max_error_px, soft=False)
-            if r is not None:
+            if r is not None and r.n_inliers >= min_inliers:
                 out.append((r, int(v)))
-        if pooled and len(pool) > 1:
-            idx = np.concatenate([k for k, _ in pool])  # (frame keypoint, world point) of every view's matches
-            X = np.concatenate([x for _, x in pool])
-            out = [(_pooled(r, feats.kpts, idx, X, camera, max_error_px), v) for r, v in out]
-        return [(r, v) for r, v in out if r.n_inliers >= min_inliers]
+        return out
 
     def localize(self, feats: Features, camera: Camera, k: int = 8, min_inliers: int = 30,
                  max_error_px: float = 3.0, ambiguity: float = 0.8, check: int = 32,
@@ -156,8 +146,7 @@ class RelocDB:
 
     def hypotheses(self, feats: Features, camera: Camera, k: int = 8, min_inliers: int = 12, max_error_px: float = 3.0,
                    near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None,
-                   known: list[tuple[PnpResult, int]] | None = None, skip: int = 0,
-                   pooled: bool = False) -> list[tuple[PnpResult, int]]:
+                   known: list[tuple[PnpResult, int]] | None = None, skip: int = 0) -> list[tuple[PnpResult, int]]:
         """Coarse poses from the top-``k`` views with at least ``min_inliers`` inliers, the best per place
         (places differ by more than 1 m or 20 degrees), best first, each with its view.
 
@@ -168,7 +157,7 @@ class RelocDB:
         ``known``, ``skip``: the answer of a call for the top ``skip`` views; the search widens to the top ``k`` without
         solving those again."""
         order = self.candidates(feats, k, near)[skip:]
-        solved = _inside(self._solve_views(feats, camera, order, min_inliers, max_error_px, pooled), within)
+        solved = _inside(self._solve_views(feats, camera, order, min_inliers, max_error_px), within)
         results = sorted(list(known or []) + solved, key=lambda rv: -rv[0].n_inliers)
         places: list[tuple[PnpResult, int]] = []
         for r, v in results:
@@ -191,7 +180,7 @@ class RelocDB:
                   max_error_px: float = 3.0, ambiguity: float = 0.8,
                   near: tuple[np.ndarray, float] | None = None, within: tuple[np.ndarray, float] | None = None,
                   far_ambiguity: float | None = None, verify: Callable[[PnpResult], bool] | None = None,
-                  verify_far: Callable[[PnpResult], bool] | None = None, pooled: bool = False) -> str | None:
+                  verify_far: Callable[[PnpResult], bool] | None = None) -> str | None:
         """Why (None: not) views ranked ``skip``..``check`` for this query hold another place that fits it about as
         well as ``best``. In the simulated warehouse the true aisle ranked outside the top 8 twice, and a
         wrong aisle 24-30 m away was accepted and then confirmed by its own render; the top 32 held a rival
@@ -200,7 +189,7 @@ class RelocDB:
         the camera cannot be is no rival."""
         order = self.candidates(feats, check, near)[skip:]
         floor = max(6, int(min(ambiguity, far_ambiguity or ambiguity) * best.n_inliers))  # weaker solutions cannot be rivals
-        found = _inside(self._solve_views(feats, camera, order, floor, max_error_px, pooled), within)
+        found = _inside(self._solve_views(feats, camera, order, floor, max_error_px), within)
         # the best place's support: its own views ranked lower may fit better (the office: 50 inliers in the top 8, 91 below)
         support = max([best.n_inliers] + [r.n_inliers for r, _ in found if not _distinct(best.T_wc, r.T_wc)])
         return self._rival_in(best, -1, found, ambiguity, far_ambiguity, support, verify, verify_far)
@@ -248,30 +237,6 @@ class RelocDB:
                            z["vlad"].astype(np.float32), z["vocab"], meta)
         except (OSError, KeyError, json.JSONDecodeError) as e:
             raise ValueError(f"{path}: not a relocalization database ({e})") from None
-
-
-POOL_MIN_VIEW = 12  # a view with this many matches is solved on its own, its pose then counted over every view's
-
-
-def _pooled(r: PnpResult, kpts: np.ndarray, idx: np.ndarray, X: np.ndarray, camera: Camera,
-            max_error_px: float) -> PnpResult:
-    """``r`` (solved on one view's matches) solved again on the matches of every view searched that lie near it:
-    a frame that straddles two faces (or two look-around yaws) shares half its keypoints with each, and a close-up
-    a metre from every view shares a few with several. Each frame keypoint counts once (its match nearest the pose).
-    Kept only when it holds more inliers than ``r``."""
-    uv = kpts[idx].astype(np.float64)
-    uvu = undistort_pixels(camera, uv) if camera.is_distorted else uv
-    err = reprojection_errors(r.T_wc, camera, uvu, X)
-    near = np.flatnonzero(err < 2 * max_error_px)
-    if len(near) <= r.n_inliers:
-        return r
-    near = near[np.argsort(err[near])]
-    near = near[np.unique(idx[near], return_index=True)[1]]  # one match per frame keypoint: its nearest
-    if len(near) <= r.n_inliers:
-        return r
-    p = solve_pnp(uv[near], X[near], camera, max_error_px=max_error_px, soft=False, max_iterations=200,
-                  min_iterations=50)
-    return p if p is not None and p.n_inliers > r.n_inliers else r
 
 
 def _inside(results: list[tuple[PnpResult, int]], within: tuple[np.ndarray, float] | None) -> list[tuple[PnpResult, int]]:
