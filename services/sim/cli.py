@@ -16,6 +16,8 @@ examples:
   cristal sim --preset office --rolling-shutter 20 --out rs/     a phone-like rolling shutter (rows read over 20 ms)
   cristal sim --preset office --scan-flaws survey --out real/    a scan as registration software leaves it
   cristal sim --preset office --scan-colour intensity --out nir/  a scanner that took no pictures (intensity only)
+  cristal sim --preset office --changes 0.3 --out later/       filmed weeks after the scan: 30 % of the furniture
+                                                               moved or gone, new boxes about
 
 what you get (docs/CONVENTIONS.md layout):
   site/scan.ply                    colored LiDAR scan, world frame in metres (z up)
@@ -23,6 +25,7 @@ what you get (docs/CONVENTIONS.md layout):
   site/seq_00/camera.json          intrinsics
   site/seq_00/groundtruth.txt      TUM camera-to-world poses
   site/mesh.npz, site/site.json    the mesh and settings, for ground-truth renders (cristal sim-view)
+  site/mesh_camera.npz             with --changes: the mesh the camera filmed (site.json says what changed)
 """
 
 VIEW_EPILOG = """\
@@ -64,6 +67,11 @@ def register(sub) -> None:
                         "0.01 deg, 10 %% exposure, 30 %% of edge returns mixed; registration: the survey's registration "
                         "alone; poor: 1 cm / 0.03 deg, 30 %%, all; loose: 1 mm / 0.003 deg but one station (the one "
                         "nearest the stations' middle) 1 cm / 0.03 deg off (default: none, a perfect scan)")
+    p.add_argument("--changes", type=float, default=0.0, metavar="FRACTION",
+                   help="the site changed after the scan: this share (0-1) of its movable objects (desks, chairs, "
+                        "shelf boxes, pallets with their load) moved or taken away, and new boxes on the floor, a "
+                        "third as many as those changed. The scan shows the site as built, the camera the changed one "
+                        "(default 0: as scanned)")
     p.set_defaults(func=run_sim)
 
     v = sub.add_parser("sim-view", help="ground-truth render (RGB + depth) of a simulated site from any pose",
@@ -87,19 +95,25 @@ def run_sim(args) -> int:
 
     if args.rolling_shutter is not None and not 0 <= args.rolling_shutter <= 200:
         raise CliError(f"--rolling-shutter is the readout in milliseconds, 0 to 200 (got {args.rolling_shutter:g})")
+    if not 0 <= args.changes <= 1:
+        raise CliError(f"--changes is the share of movable objects changed, 0 to 1 (got {args.changes:g})")
 
     cfg = config_for(args.preset, seed=args.seed, frames=args.frames, sequences=args.sequences, fps=args.fps,
                      width=args.width, height=args.height, hfov_deg=args.hfov_deg,
                      distortion=tuple(args.distortion) if args.distortion else None, lidar_step_deg=args.lidar_step_deg,
                      readout_s=args.rolling_shutter / 1000.0 if args.rolling_shutter else None,
                      scan_flaws=None if args.scan_flaws == "none" else args.scan_flaws,
-                     scan_intensity=args.scan_colour == "intensity")
+                     scan_intensity=args.scan_colour == "intensity", changes=args.changes)
     t0 = time.perf_counter()
     s = generate_site(cfg, args.out)
     dt = time.perf_counter() - t0
     print(f"site {args.out}: preset {s['preset']} seed {s['seed']}, {s['points']:,} points from "
           f"{len(s['stations'])} stations, sequences: {', '.join(q['name'] + ' (' + str(q['frames']) + ' frames)' for q in s['sequences'])}; "
           f"{dt:.1f} s")
+    if s.get("changes"):
+        c = s["changes"]
+        print(f"changed after the scan: {c['moved']} of {c['movable']} movable objects moved, {c['removed']} taken away, "
+              f"{c['added']} new boxes")
     emit_summary({"out": str(args.out), "preset": s["preset"], "seed": s["seed"], "points": s["points"],
                   "sequences": [q["name"] for q in s["sequences"]], "seconds": round(dt, 2), **s["timings"]})
     return 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +20,18 @@ class Mesh:
     faces: np.ndarray  # (F, 3) int32
     uv: np.ndarray  # (F, 3, 2) float64 texture coordinates per corner, in texture repeats
     material: np.ndarray  # (F,) int32 index into MATERIALS
+    objects: np.ndarray | None = None  # (F,) int32: the movable object a face belongs to (furniture, stock), -1 for
+    #                                    the building; None: nothing is movable (meshes saved before objects existed)
+    parents: np.ndarray | None = None  # (objects,) int32: the object each one rests on (a monitor on its desk), -1: none
+
+    def object_ids(self) -> np.ndarray:
+        """(F,) int32 object per face, -1 where a face belongs to no movable object."""
+        return self.objects if self.objects is not None else np.full(self.n_faces, -1, np.int32)
+
+    def object_parents(self) -> np.ndarray:
+        """(objects,) int32: the object each movable object rests on, -1 where none."""
+        n = int(self.object_ids().max()) + 1
+        return self.parents if self.parents is not None else np.full(max(n, 0), -1, np.int32)
 
     @property
     def n_faces(self) -> int:
@@ -40,12 +53,14 @@ class Mesh:
 
     def save(self, path: str | Path) -> None:
         with atomic_write(path, "wb") as f:
-            np.savez_compressed(f, vertices=self.vertices, faces=self.faces, uv=self.uv, material=self.material)
+            np.savez_compressed(f, vertices=self.vertices, faces=self.faces, uv=self.uv, material=self.material,
+                                objects=self.object_ids(), parents=self.object_parents())
 
     @classmethod
     def load(cls, path: str | Path) -> "Mesh":
         with np.load(path) as z:
-            return cls(z["vertices"], z["faces"], z["uv"], z["material"])
+            return cls(z["vertices"], z["faces"], z["uv"], z["material"], z["objects"] if "objects" in z else None,
+                       z["parents"] if "parents" in z else None)
 
 
 class MeshBuilder:
@@ -57,7 +72,22 @@ class MeshBuilder:
         self._f: list[np.ndarray] = []
         self._uv: list[np.ndarray] = []
         self._m: list[int] = []
+        self._o: list[int] = []
         self._nv = 0
+        self._object = -1  # the movable object faces are added to now (-1: the building)
+        self._parents: list[int] = []  # per object, the one it rests on (-1: none)
+
+    @contextmanager
+    def movable(self):
+        """Faces added inside belong to one movable object (a desk with its legs, a pallet with its boxes): what
+        ``services.sim.changes`` may move or take away between the scan and the camera's day. Nested, an object rests
+        on the one around it (a monitor on its desk): it goes where that one goes, and may be moved on its own."""
+        outer, self._object = self._object, len(self._parents)
+        self._parents.append(outer)
+        try:
+            yield
+        finally:
+            self._object = outer
 
     def quad(self, p0, p1, p2, p3, material: str) -> None:
         """A planar quad p0-p1-p2-p3 (p1 along the texture's u from p0, p3 along v)."""
@@ -80,9 +110,11 @@ class MeshBuilder:
             self._f.append(np.array([base + a, base + b, base + c]))
             self._uv.append(uvq[[a, b, c]])
             self._m.append(mid)
+            self._o.append(self._object)
 
-    def box(self, lo, hi, material: str | dict, skip: tuple[str, ...] = ()) -> None:
-        """Axis-aligned box; ``material`` may map face names (-x +x -y +y -z +z) to materials."""
+    def box(self, lo, hi, material: str | dict, skip: tuple[str, ...] = (), yaw: float = 0.0) -> None:
+        """Axis-aligned box; ``material`` may map face names (-x +x -y +y -z +z) to materials; ``yaw`` (radians)
+        turns it about the vertical through its centre."""
         x0, y0, z0 = lo
         x1, y1, z1 = hi
         mats = material if isinstance(material, dict) else {}
@@ -95,8 +127,12 @@ class MeshBuilder:
             "-z": ((x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0)),
             "+z": ((x0, y1, z1), (x1, y1, z1), (x1, y0, z1), (x0, y0, z1)),
         }
+        c, s = np.cos(yaw), np.sin(yaw)
+        mx, my = (x0 + x1) / 2, (y0 + y1) / 2
         for name, q in faces.items():
             if name not in skip:
+                if yaw:
+                    q = [(mx + c * (x - mx) - s * (y - my), my + s * (x - mx) + c * (y - my), z) for x, y, z in q]
                 self.quad(*q, mats.get(name, default))
 
     def wall_x(self, x0, x1, y, thickness, z0, z1, material, openings=()) -> None:
@@ -146,4 +182,6 @@ class MeshBuilder:
             np.array(self._f, dtype=np.int32),
             np.array(self._uv, dtype=np.float64),
             np.array(self._m, dtype=np.int32),
+            np.array(self._o, dtype=np.int32),
+            np.array(self._parents, dtype=np.int32),
         )

@@ -104,17 +104,23 @@ def office(seed: int) -> Scene:
     # furniture, room A: desks in the middle, cabinets along walls
     for (x, y) in [(2.2, 2.0), (3.9, 3.2)]:
         x += rng.uniform(-0.2, 0.2)
-        b.box((x - 0.8, y - 0.4, 0.72), (x + 0.8, y + 0.4, 0.76), "wood")
-        for dx in (-0.75, 0.75):
-            for dy in (-0.35, 0.35):
-                b.box((x + dx - 0.03, y + dy - 0.03, 0), (x + dx + 0.03, y + dy + 0.03, 0.72), "dark_plastic")
-        b.box((x - 0.25, y - 0.15, 0.76), (x + 0.25, y - 0.12, 1.1), "dark_plastic")  # monitor
-        b.box((x - 0.3, y + 0.45, 0.0), (x + 0.3, y + 1.0, 0.48), "fabric")  # chair seat
-        b.box((x - 0.3, y + 0.95, 0.48), (x + 0.3, y + 1.0, 1.0), "fabric")  # chair back
+        with b.movable():
+            b.box((x - 0.8, y - 0.4, 0.72), (x + 0.8, y + 0.4, 0.76), "wood")
+            for dx in (-0.75, 0.75):
+                for dy in (-0.35, 0.35):
+                    b.box((x + dx - 0.03, y + dy - 0.03, 0), (x + dx + 0.03, y + dy + 0.03, 0.72), "dark_plastic")
+            with b.movable():  # on the desk
+                b.box((x - 0.25, y - 0.15, 0.76), (x + 0.25, y - 0.12, 1.1), "dark_plastic")  # monitor
+        with b.movable():
+            b.box((x - 0.3, y + 0.45, 0.0), (x + 0.3, y + 1.0, 0.48), "fabric")  # chair seat
+            b.box((x - 0.3, y + 0.95, 0.48), (x + 0.3, y + 1.0, 1.0), "fabric")  # chair back
         pois.append((x, y, 0.9))
-    b.box((0.05, 4.3, 0), (1.2, 4.9, 1.9), {"default": "blue_metal", "+y": "blue_metal"})
-    b.box((5.3, 0.05, 0), (5.95, 1.2, 1.2), "wood")
-    b.box((5.4, 0.2, 1.2), (5.8, 0.6, 1.45), "cardboard")
+    with b.movable():
+        b.box((0.05, 4.3, 0), (1.2, 4.9, 1.9), {"default": "blue_metal", "+y": "blue_metal"})
+    with b.movable():
+        b.box((5.3, 0.05, 0), (5.95, 1.2, 1.2), "wood")
+        with b.movable():  # on the cabinet
+            b.box((5.4, 0.2, 1.2), (5.8, 0.6, 1.45), "cardboard")
     # room B: a metal shelf with boxes, a sofa, a table
     sx0, sx1 = XB0 + 0.2, XB0 + 2.6
     for z in (0.05, 0.7, 1.35, 2.0):
@@ -125,17 +131,21 @@ def office(seed: int) -> Scene:
                 w = rng.uniform(0.3, 0.6)
                 h = rng.uniform(0.25, 0.55)
                 if x + w < sx1:
-                    b.box((x, Y1 - 0.55, z + 0.04), (x + w, Y1 - 0.12, z + 0.04 + h), "cardboard")
+                    with b.movable():
+                        b.box((x, Y1 - 0.55, z + 0.04), (x + w, Y1 - 0.12, z + 0.04 + h), "cardboard")
                 x += w + rng.uniform(0.03, 0.15)
     for x in (sx0, sx1 - 0.05):
         b.box((x, Y1 - 0.6, 0), (x + 0.05, Y1 - 0.05, 2.1), "blue_metal")
     pois.append(((sx0 + sx1) / 2, Y1 - 0.3, 1.2))
-    b.box((9.0, 0.3, 0), (11.2, 1.1, 0.45), "fabric")
-    b.box((9.0, 0.1, 0), (11.2, 0.3, 0.9), "fabric")
-    b.box((9.4, 2.0, 0.7), (10.8, 3.0, 0.74), "wood")
-    b.box((9.5, 2.1, 0), (9.56, 2.16, 0.7), "dark_plastic")
-    b.box((10.64, 2.84, 0), (10.7, 2.9, 0.7), "dark_plastic")
-    b.box((10.0, 2.3, 0.74), (10.4, 2.6, 1.0), "cardboard")
+    with b.movable():  # the sofa
+        b.box((9.0, 0.3, 0), (11.2, 1.1, 0.45), "fabric")
+        b.box((9.0, 0.1, 0), (11.2, 0.3, 0.9), "fabric")
+    with b.movable():  # the table
+        b.box((9.4, 2.0, 0.7), (10.8, 3.0, 0.74), "wood")
+        b.box((9.5, 2.1, 0), (9.56, 2.16, 0.7), "dark_plastic")
+        b.box((10.64, 2.84, 0), (10.7, 2.9, 0.7), "dark_plastic")
+        with b.movable():  # on the table
+            b.box((10.0, 2.3, 0.74), (10.4, 2.6, 1.0), "cardboard")
     pois.append((10.1, 2.5, 0.8))
     pois.append((8.7, Y1, 1.5))  # the window
 
@@ -209,21 +219,23 @@ def warehouse(seed: int) -> Scene:
                         continue  # empty slot: lets the scanner see through, like real racks
                     for s in range(2):
                         px = xa + k * bay + 0.2 + s * 1.25
-                        b.box((px, y0 + 0.05, z + 0.01), (px + 1.1, y0 + depth - 0.05, z + 0.15), "pallet_wood")
-                        cx = px + 0.05
-                        while cx < px + 1.0:
-                            w = rng.uniform(0.3, 0.55)
-                            h = rng.uniform(0.3, 1.2)
-                            if cx + w <= px + 1.1:
-                                b.box((cx, y0 + 0.1, z + 0.15), (cx + w, y0 + depth - 0.1, z + 0.15 + h),
-                                      "cardboard" if rng.random() < 0.8 else "fabric")
-                            cx += w + 0.04
+                        with b.movable():  # a pallet with its load
+                            b.box((px, y0 + 0.05, z + 0.01), (px + 1.1, y0 + depth - 0.05, z + 0.15), "pallet_wood")
+                            cx = px + 0.05
+                            while cx < px + 1.0:
+                                w = rng.uniform(0.3, 0.55)
+                                h = rng.uniform(0.3, 1.2)
+                                if cx + w <= px + 1.1:
+                                    b.box((cx, y0 + 0.1, z + 0.15), (cx + w, y0 + depth - 0.1, z + 0.15 + h),
+                                          "cardboard" if rng.random() < 0.8 else "fabric")
+                                cx += w + 0.04
             pois.append(((xa + xb) / 2, y0, 2.0))
     # free-standing pallets and a machine near the walls
     for _ in range(10):
         x, y = rng.uniform(3, 57), rng.uniform(35.5, 38.5)
-        b.box((x, y, 0), (x + 1.2, y + 1.0, 0.15), "pallet_wood")
-        b.box((x + 0.1, y + 0.1, 0.15), (x + 1.1, y + 0.9, 0.15 + rng.uniform(0.4, 1.5)), "cardboard")
+        with b.movable():
+            b.box((x, y, 0), (x + 1.2, y + 1.0, 0.15), "pallet_wood")
+            b.box((x + 0.1, y + 0.1, 0.15), (x + 1.1, y + 0.9, 0.15 + rng.uniform(0.4, 1.5)), "cardboard")
         pois.append((x + 0.6, y + 0.5, 0.8))
 
     xs = np.arange(5.0, X, 10.0)

@@ -5,6 +5,7 @@ Layout written (``docs/CONVENTIONS.md``)::
     <out>/scan.ply                 the simulated LiDAR scan (world frame, metres)
     <out>/site.json                preset, seed, settings, stations, lighting, exposure, timings, counts
     <out>/mesh.npz                 the textured mesh: ground-truth renders for any pose (``SimSite.render``)
+    <out>/mesh_camera.npz          only with ``changes``: the mesh the camera filmed (moved furniture, new boxes)
     <out>/<sequence>/rgb/*.jpg, rgb.txt, camera.json, groundtruth.txt
 
 Everything is deterministic from (preset, seed, settings).
@@ -56,6 +57,7 @@ class SiteConfig:
     distortion: tuple[float, float, float, float, float] | None = None  # None: an undistorted camera
     sensor: SensorModel = field(default_factory=SensorModel)
     walk_speed: float = 0.9
+    changes: float = 0.0  # share of movable objects changed between the scan and the camera's day (sim.changes)
     start_time: float = 1700000000.0
 
 
@@ -78,6 +80,17 @@ def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
     scene = make_scene(cfg.preset, cfg.seed)
     renderer = SceneRenderer(scene.mesh, texture_seed=cfg.seed)
     scene.mesh.save(out / "mesh.npz")
+    camera_renderer, changes = renderer, None  # what the camera films: the scene as scanned, or changed since
+    if cfg.changes > 0:
+        from services.sim.changes import change_scene
+
+        changed, changes = change_scene(scene, cfg.changes, np.random.default_rng([cfg.seed, 7]))
+        changed.save(out / "mesh_camera.npz")
+        camera_renderer = SceneRenderer(changed, texture_seed=cfg.seed)
+        log.info("changed after the scan: %d of %d movable objects moved, %d taken away, %d new boxes",
+                 changes["moved"], changes["movable"], changes["removed"], changes["added"])
+    elif (out / "mesh_camera.npz").exists():
+        (out / "mesh_camera.npz").unlink()  # (a site regenerated into the same folder without changes)
     timings["scene_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -113,7 +126,8 @@ def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
     for k in range(cfg.sequences):
         t0 = time.perf_counter()
         name = f"seq_{k:02d}"
-        n = _write_sequence(scene, renderer, cfg, camera, out / name, np.random.default_rng([cfg.seed, 100 + k]))
+        n = _write_sequence(scene, renderer, camera_renderer, cfg, camera, out / name,
+                            np.random.default_rng([cfg.seed, 100 + k]))
         timings[f"{name}_s"] = time.perf_counter() - t0
         seqs.append({"name": name, "frames": n})
         log.info("sequence %s: %d frames -> %s", name, n, out / name)
@@ -131,16 +145,19 @@ def generate_site(cfg: SiteConfig, out: str | Path) -> dict:
         "scan_exposure": exposure,
         "bounds": [list(scene.bounds[0]), list(scene.bounds[1])],
         "sequences": seqs,
+        "changes": changes,
         "timings": {k: round(v, 2) for k, v in timings.items()},
     }
     atomic_write_text(out / "site.json", json.dumps(summary, indent=2) + "\n")
     return summary
 
 
-def _write_sequence(scene: Scene, renderer: SceneRenderer, cfg: SiteConfig, camera: Camera, root: Path,
-                    rng: np.random.Generator) -> int:
+def _write_sequence(scene: Scene, scanned: SceneRenderer, renderer: SceneRenderer, cfg: SiteConfig, camera: Camera,
+                    root: Path, rng: np.random.Generator) -> int:
+    """The walk is planned on the site as ``scanned`` (the same walk with and without changes since the scan) and
+    filmed by ``renderer``."""
     duration = cfg.frames / cfg.fps
-    walk = make_walk(scene, renderer, duration, rng, speed=cfg.walk_speed)
+    walk = make_walk(scene, scanned, duration, rng, speed=cfg.walk_speed)
     ae = AutoExposure(cfg.sensor)
     exp = cfg.sensor.exposure_time_s
     with SequenceWriter(root, camera, ".jpg", cfg.sensor.jpeg_quality) as w:
@@ -179,7 +196,8 @@ class SimSite:
 
     ``render(T_wc, camera)`` returns what the point cloud *should* look like from there (scan-day
     lighting and the scanner's exposure, same colour pipeline as the scan's points): the target
-    for training and scoring the point renderer. ``lighting="camera"`` gives the camera-day look.
+    for training and scoring the point renderer. ``lighting="camera"`` gives the camera-day look (and, with
+    ``--changes``, the camera-day site).
     """
 
     def __init__(self, root: str | Path):
@@ -192,6 +210,9 @@ class SimSite:
             raise ValueError(f"{meta_path}: site format {self.meta.get('format_version')} is not {SITE_FORMAT_VERSION}")
         self.mesh = Mesh.load(self.root / "mesh.npz")
         self.renderer = SceneRenderer(self.mesh, texture_seed=int(self.meta["seed"]))
+        self.camera_renderer = self.renderer  # the site the camera filmed: changed since the scan, or the same
+        if (self.root / "mesh_camera.npz").exists():
+            self.camera_renderer = SceneRenderer(Mesh.load(self.root / "mesh_camera.npz"), texture_seed=int(self.meta["seed"]))
         self.scan_lighting = Lighting.from_dict(self.meta["scan_lighting"])
         self.camera_lighting = Lighting.from_dict(self.meta["camera_lighting"])
         self.exposure = float(self.meta["scan_exposure"])
@@ -199,7 +220,8 @@ class SimSite:
     def render(self, T_wc: Pose, camera: Camera, lighting: str = "scan") -> tuple[np.ndarray, np.ndarray]:
         """(H,W,3) uint8 RGB and (H,W) float32 z-depth in metres (0 where nothing is hit)."""
         light = {"scan": self.scan_lighting, "camera": self.camera_lighting}[lighting]
-        rad, depth = self.renderer.render(T_wc, camera, light)
+        renderer = self.renderer if lighting == "scan" else self.camera_renderer
+        rad, depth = renderer.render(T_wc, camera, light)
         gain = self.exposure if lighting == "scan" else 0.16 / max(float(rad.mean()), 1e-6)
         rgb = (linear_to_srgb(rad * gain) * 255.0 + 0.5).astype(np.uint8)
         return rgb, depth
