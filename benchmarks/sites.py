@@ -79,6 +79,9 @@ SITES: dict[str, tuple[list[str], list[str], list[str]]] = {
     "office-chg30": (["--preset", "office", "--seed", "1", "--changes", "0.3"], [], []),
     "office-chg60": (["--preset", "office", "--seed", "1", "--changes", "0.6"], [], []),
     "office-s8-chg30": (["--preset", "office", "--seed", "8", "--changes", "0.3"], [], []),
+    "office-s2-chg30": (["--preset", "office", "--seed", "2", "--changes", "0.3"], [], []),
+    "office-s13-chg30": (["--preset", "office", "--seed", "13", "--changes", "0.3"], [], []),
+    "office-s44-chg30": (["--preset", "office", "--seed", "44", "--changes", "0.3"], [], []),
     # its map takes ~45 min on 2 cores (RESULTS stop 33): --maps builds it only when --sites names it
     "warehouse-s3": (["--preset", "warehouse", "--seed", "3"], ["--spacing", "2"], ["--spacing", "2"]),
 }

@@ -219,7 +219,12 @@ class RMConfig:
     #                                      predicted 0.5 cm, and 5 cm from where the last two tracked frames led
     ransac_min_iterations: int = 100  # while tracking (relocalization keeps poselib's 1000)
     lk_window: int = 15  # patch (pixels at the render's resolution) re-aligning each match by Lucas-Kanade; 0 = off
-    lk_max_px: float = 2.0  # a match whose patch lands further than this from its keypoint keeps the keypoint
+    lk_max_px: float = 2.0  # a match whose patch lands further than this from its keypoint keeps the keypoint ...
+    lk_motion_px: float = 4.0  # ... plus, while tracking, as far as the predicted motion since the keyframe moves the
+    #                           image, up to this (_image_motion_px): on weak texture (carpet, plaster) XFeat keypoints
+    #                           keep to their 8x8 cells in render and frame alike, so a reused keyframe's matches say the
+    #                           camera has not moved since it, and the true place lies beyond 2 px (office seed 8 after
+    #                           its desk was taken away: poses stuck to a keyframe 5 frames old, 5-7 cm / 0.84 deg off)
     direct_points: int = 300  # tracking first aligns the frame to this many corner patches of the keyframe render
     #                           from the prediction (no XFeat on the frame); 0 = off (see _direct). 300, not 150: in
     #                           a fast turn's blur only some converge (whip pan with odometry: 20 of 30 frames
@@ -380,6 +385,17 @@ def refine_matches_lk(template: np.ndarray, target: np.ndarray, uv_template: np.
     q = q.reshape(-1, 2).astype(np.float64)
     ok = (st.ravel() == 1) & (np.linalg.norm(q - p1.reshape(-1, 2), axis=1) <= max_px)
     return q, ok
+
+
+def _image_motion_px(camera: Camera, a: Pose, b: Pose, X: np.ndarray) -> float:
+    """Median distance (frame pixels) the world points ``X`` move in the image between poses ``a`` and ``b``."""
+    if len(X) == 0:
+        return 0.0
+    A, B = a.inverse(), b.inverse()
+    pa, za = camera.project(X @ A.R.T + A.t)
+    pb, zb = camera.project(X @ B.R.T + B.t)
+    ok = (za > 0) & (zb > 0)
+    return float(np.median(np.linalg.norm(pa[ok] - pb[ok], axis=1))) if ok.any() else 0.0
 
 
 @dataclass
@@ -668,7 +684,7 @@ class RenderMatchTracker:
         return kf.blurred
 
     def _solve(self, live: Features, feats: Features, xyz: np.ndarray, gray: np.ndarray | None, fr: _Frame,
-               initial: Pose | None, px_factor: float = 1.0) -> PnpResult | None:
+               initial: Pose | None, px_factor: float = 1.0, kf_pose: Pose | None = None) -> PnpResult | None:
         """Match, re-align the matches by Lucas-Kanade against the keyframe image ``gray``, and solve.
         ``px_factor``: frame pixels per feature pixel relative to the base resolution (2 at half
         resolution): the RANSAC threshold and the reprojection gate scale with it."""
@@ -676,7 +692,8 @@ class RenderMatchTracker:
         m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos, self.match_device)
         uv, X = live.kpts[m[:, 0]].astype(np.float64), xyz[m[:, 1]]
         if gray is not None and len(m):
-            uv, X = self._refine(fr, uv, X, feats.kpts[m[:, 1]], gray)
+            reach = self._lk_reach(fr, X, gray.shape[1] / fr.camera.width, kf_pose, initial)
+            uv, X = self._refine(fr, uv, X, feats.kpts[m[:, 1]], gray, reach)
         t1 = time.perf_counter()
         r = None
         if len(uv) >= 6:
@@ -694,15 +711,24 @@ class RenderMatchTracker:
         fr.tm["pose_ms"] = fr.tm.get("pose_ms", 0.0) + 1e3 * (time.perf_counter() - t1)
         return r
 
-    def _refine(self, fr: _Frame, uv: np.ndarray, X: np.ndarray, uv_kf: np.ndarray, gray: np.ndarray):
+    def _lk_reach(self, fr: _Frame, X: np.ndarray, scale: float, kf_pose: Pose | None, predicted: Pose | None) -> float:
+        """How far (pixels of a keyframe image ``scale`` times the frame's size) a match may move when re-aligned:
+        ``lk_max_px``, and while tracking against a keyframe rendered away from the frame's predicted pose, as far
+        as that motion moves the matched points ``X`` in the image, up to ``lk_motion_px`` more."""
+        if kf_pose is None or predicted is None or fr.relocalizing or self.cfg.lk_motion_px <= 0:
+            return self.cfg.lk_max_px
+        return self.cfg.lk_max_px + min(self.cfg.lk_motion_px, scale * _image_motion_px(fr.camera, kf_pose, predicted, X))
+
+    def _refine(self, fr: _Frame, uv: np.ndarray, X: np.ndarray, uv_kf: np.ndarray, gray: np.ndarray, reach: float):
         """Live keypoints ``uv`` (frame pixels) moved to where the keyframe's patches around ``uv_kf``
-        land in the live frame; a match whose patch does not converge keeps its keypoint."""
+        land in the live frame, within ``reach`` pixels of the keyframe image; a match whose patch does not converge
+        keeps its keypoint."""
         size = (gray.shape[1], gray.shape[0])
         if size not in fr.gray:
             fr.gray[size] = normalised_gray(fr.image, size)
         sx, sy = size[0] / fr.camera.width, size[1] / fr.camera.height  # pixel centres at integers
         start = np.column_stack([(uv[:, 0] + 0.5) * sx - 0.5, (uv[:, 1] + 0.5) * sy - 0.5])
-        q, ok = refine_matches_lk(gray, fr.gray[size], uv_kf, start, self.cfg.lk_window, self.cfg.lk_max_px)
+        q, ok = refine_matches_lk(gray, fr.gray[size], uv_kf, start, self.cfg.lk_window, reach)
         q = np.column_stack([(q[:, 0] + 0.5) / sx - 0.5, (q[:, 1] + 0.5) / sy - 0.5])
         return np.where(ok[:, None], q, uv), X
 
@@ -731,7 +757,7 @@ class RenderMatchTracker:
                          self.cfg.calib_frames, 1e3 * self.cfg.calib_fractions[int(np.argmax(inl))] * fr.motion[1], 1e3 * self._calibrated_exposure())
             # the frame's pose as any other frame's, with the exposure calibrated so far: one frame's own best
             # candidate is noisy, and these are the fastest, least forgiving frames
-        return self._solve(live, *self._keyframe_points(kf, fr), fr, initial, px)
+        return self._solve(live, *self._keyframe_points(kf, fr), fr, initial, px, kf.T_wc)
 
     def _keyframe_points(self, kf: Keyframe, fr: _Frame) -> tuple:
         """The keyframe's features, world points and grey image as this frame sees them (blurred when it moves fast)."""
@@ -1287,7 +1313,7 @@ class RenderMatchTracker:
         m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos, self.match_device)
         uv, X = live.kpts[m[:, 0]].astype(np.float64), xyz[m[:, 1]]
         if gray is not None and len(m):
-            uv, X = self._refine(fr, uv, X, feats.kpts[m[:, 1]], gray)
+            uv, X = self._refine(fr, uv, X, feats.kpts[m[:, 1]], gray, self.cfg.lk_max_px)
         return uv, X
 
     # ---- the frame loop --------------------------------------------------------
