@@ -1558,7 +1558,9 @@ def test_the_velocity_a_lost_frame_s_search_follows_is_the_mean_over_the_last_re
                 off.append(np.linalg.norm(tr.anchor.velocity - (G[i].t - G[i - 1].t) / dt))
         assert len(off) >= 5
         errors[window] = float(np.mean(off))
-    assert errors[0.3] < 0.5 * errors[0.0], errors  # (m/s, 200x150 frames: 0.61 from the last step, 0.21 the mean)
+    # (m/s, 200x150 frames: 0.35 from the last step, 0.20 the mean; 0.61 and 0.21 before stop 67's Lucas-Kanade reach
+    # steadied the poses themselves)
+    assert errors[0.3] < 0.7 * errors[0.0], errors
 
 
 def test_a_pose_tracked_from_a_prediction_far_off_is_matched_again_from_a_render_where_it_landed(rm_setup, site_480):
