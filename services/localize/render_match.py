@@ -687,7 +687,8 @@ class RenderMatchTracker:
                initial: Pose | None, px_factor: float = 1.0, kf_pose: Pose | None = None) -> PnpResult | None:
         """Match, re-align the matches by Lucas-Kanade against the keyframe image ``gray``, and solve.
         ``px_factor``: frame pixels per feature pixel relative to the base resolution (2 at half
-        resolution): the RANSAC threshold and the reprojection gate scale with it."""
+        resolution): the RANSAC threshold and the reprojection gate scale with it. ``kf_pose``: where the keyframe
+        was rendered; with ``initial`` it sets how far the re-alignment may move a match (:meth:`_lk_reach`)."""
         t0 = time.perf_counter()
         m = mutual_nn(live.desc, feats.desc, self.cfg.match_cos, self.match_device)
         uv, X = live.kpts[m[:, 0]].astype(np.float64), xyz[m[:, 1]]
