@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.sim.mesh import Mesh, MeshBuilder
+from services.sim.mesh import Mesh, MeshBuilder, turn_about_z
 from services.sim.scenes import Scene
 
 __all__ = ["change_scene"]
@@ -34,15 +34,6 @@ def _route_distance(xy: np.ndarray, route: list[np.ndarray]) -> np.ndarray:
         ab = b - a
         s = np.clip(((xy - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
         out = np.minimum(out, np.linalg.norm(xy - (a + s[:, None] * ab), axis=1))
-    return out
-
-
-def _turn(v: np.ndarray, centre: np.ndarray, yaw: float, shift: np.ndarray) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    out = v.copy()
-    d = v[:, :2] - centre
-    out[:, 0] = centre[0] + c * d[:, 0] - s * d[:, 1] + shift[0]
-    out[:, 1] = centre[1] + s * d[:, 0] + c * d[:, 1] + shift[1]
     return out
 
 
@@ -92,7 +83,7 @@ def change_scene(scene: Scene, fraction: float, rng: np.random.Generator,
             dist = rng.uniform(0.15, 0.6) if on_floor else rng.uniform(0.05, 0.2)
             ang = rng.uniform(0, 2 * np.pi)
             yaw = np.radians(rng.uniform(-30, 30) if on_floor else rng.uniform(-10, 10))
-            nv = _turn(v, centre, yaw, dist * np.array([np.cos(ang), np.sin(ang)]))
+            nv = turn_about_z(v, centre, yaw, dist * np.array([np.cos(ang), np.sin(ang)]))
             if _gap(nv, scene.route) >= clear:
                 vertices[vi] = nv
                 moved += 1

@@ -11,7 +11,18 @@ import numpy as np
 from services.io.atomic import atomic_write
 from services.sim.materials import MATERIALS, MaterialLibrary
 
-__all__ = ["Mesh", "MeshBuilder"]
+__all__ = ["Mesh", "MeshBuilder", "turn_about_z"]
+
+
+def turn_about_z(points: np.ndarray, centre_xy, yaw: float, shift_xy=(0.0, 0.0)) -> np.ndarray:
+    """Points (N, 3) turned by ``yaw`` (radians) about the vertical through ``centre_xy``, then shifted along the
+    floor by ``shift_xy``."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.array(points, dtype=np.float64)
+    d = out[:, :2] - np.asarray(centre_xy, float)
+    out[:, 0] = centre_xy[0] + c * d[:, 0] - s * d[:, 1] + shift_xy[0]
+    out[:, 1] = centre_xy[1] + s * d[:, 0] + c * d[:, 1] + shift_xy[1]
+    return out
 
 
 @dataclass
@@ -30,8 +41,9 @@ class Mesh:
 
     def object_parents(self) -> np.ndarray:
         """(objects,) int32: the object each movable object rests on, -1 where none."""
-        n = int(self.object_ids().max()) + 1
-        return self.parents if self.parents is not None else np.full(max(n, 0), -1, np.int32)
+        if self.parents is not None:
+            return self.parents
+        return np.full(max(int(self.object_ids().max()) + 1, 0), -1, np.int32)
 
     @property
     def n_faces(self) -> int:
@@ -127,12 +139,10 @@ class MeshBuilder:
             "-z": ((x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0)),
             "+z": ((x0, y1, z1), (x1, y1, z1), (x1, y0, z1), (x0, y0, z1)),
         }
-        c, s = np.cos(yaw), np.sin(yaw)
-        mx, my = (x0 + x1) / 2, (y0 + y1) / 2
         for name, q in faces.items():
             if name not in skip:
                 if yaw:
-                    q = [(mx + c * (x - mx) - s * (y - my), my + s * (x - mx) + c * (y - my), z) for x, y, z in q]
+                    q = turn_about_z(q, ((x0 + x1) / 2, (y0 + y1) / 2), yaw)
                 self.quad(*q, mats.get(name, default))
 
     def wall_x(self, x0, x1, y, thickness, z0, z1, material, openings=()) -> None:
