@@ -28,6 +28,8 @@ class PnpResult:
     # set by a caller that gates on the result (Render & Match): the scale its features were matched at
     px_factor: float = 1.0  # frame pixels per feature pixel, relative to the caller's base resolution
     px_deg: float = 0.0  # the frame camera's angle per pixel (degrees)
+    source: str = "features"  # what solved it: "features" (matched keypoints), "direct" (aligned patches), "fused"
+    disputed: str | None = None  # why a pose to track from is not to be reported, where another estimate contradicts it
 
     @property
     def n_inliers(self) -> int:
