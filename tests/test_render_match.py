@@ -249,7 +249,7 @@ def test_direct_tracking_takes_weaker_corners_when_a_strong_one_outshines_the_re
         img = (128 + 0.4 * (kf.render.rgb.astype(np.float32) - 128)).astype(np.uint8)  # a dull close-up ...
         img[20:44, 20:44] = 0
         img[20:32, 20:32] = img[32:44, 32:44] = 255  # ... with a printed checker: one corner far stronger than any other
-        kf.render, kf.direct = dataclasses.replace(kf.render, rgb=img), None
+        kf.render, kf.direct = dataclasses.replace(kf.render, rgb=img), {}
         counts[quality] = (plain, len(tr._direct_patches(kf)[0].lm_ids))
     (plain, strict), (plain_default, default) = counts.values()
     need = RMConfig().direct_min_inliers
@@ -646,6 +646,7 @@ def test_a_crowded_cold_frame_is_searched_again_with_more_keypoints(rm_setup, si
     db = build_database(renderer, positions, ext, DBConfig(face_size=320))
     seq = open_sequence(out / "seq")
     rng = np.random.default_rng(0)
+    found = 0
     for idx in (1, 3, 5):
         f = seq.read(idx)
         img = f.image.copy()
@@ -662,9 +663,14 @@ def test_a_crowded_cold_frame_is_searched_again_with_more_keypoints(rm_setup, si
         refused = RenderMatchTracker(renderer, ext, db).process(img, cam)
         assert refused.status == Status.LOST and refused.reason.startswith("render disagrees"), (idx, refused.reason)
         r = RenderMatchTracker(renderer, ext, db, RMConfig(reloc_min_agreement=0.0)).process(img, cam)
+        if r.status == Status.LOST:  # found, but direct alignment from it lands elsewhere: tracked from, not reported
+            assert "disagrees" in r.reason, (idx, r.reason)  # (frame 5: XFeat 0.8 cm / 0.14 deg off, direct 0.02 deg)
+            continue
+        found += 1
         assert r.status == Status.RELOCALIZED, (idx, r.reason)
         dt, dr = G.distance_to(r.T_wc)
         assert dt < 0.02 and dr < 0.2, (idx, dt, dr)
+    assert found >= 2
 
 def test_a_weak_top_of_the_database_ranking_widens_the_search(rm_setup):
     """The global descriptor ranks a place's best view low at times (office frame 143: 26 inliers in the top 8, 62
@@ -1554,7 +1560,9 @@ def test_the_velocity_a_lost_frame_s_search_follows_is_the_mean_over_the_last_re
     G = seq.groundtruth.poses
     errors = {}
     for window in (0.0, 0.3):
-        tr = RenderMatchTracker(renderer, ext, db, RMConfig(velocity_window_s=window))
+        # XFeat on every frame, as where direct alignment cannot hold (since stop 68 direct alignment holds this small
+        # walk's frames so steadily that one step's velocity is as good as the mean: 0.13 and 0.17 m/s)
+        tr = RenderMatchTracker(renderer, ext, db, RMConfig(velocity_window_s=window, direct_points=0))
         off = []
         for i in range(len(seq)):
             f = seq.read(i)
@@ -1564,8 +1572,7 @@ def test_the_velocity_a_lost_frame_s_search_follows_is_the_mean_over_the_last_re
                 off.append(np.linalg.norm(tr.anchor.velocity - (G[i].t - G[i - 1].t) / dt))
         assert len(off) >= 5
         errors[window] = float(np.mean(off))
-    # (m/s, 200x150 frames: 0.35 from the last step, 0.20 the mean; 0.61 and 0.21 before stop 67's Lucas-Kanade reach
-    # steadied the poses themselves)
+    # (m/s, 200x150 frames, XFeat's poses: 0.38 from the last step, 0.17 the mean)
     assert errors[0.3] < 0.7 * errors[0.0], errors
 
 
@@ -1765,3 +1772,36 @@ def test_a_relocalized_pose_that_direct_alignment_from_it_disagrees_with_is_not_
         else:  # tracked from (the two combined, nearer the truth than XFeat's), never reported: process() says why
             assert tr._plausible(r) and dr < off_deg, (dt, dr, r.sigma_r_deg)
             assert r.disputed and "disagrees" in r.disputed, r.disputed
+
+
+def test_corners_that_do_not_align_are_tried_again_with_edge_like_patches(rm_setup, site_480):
+    """A sparse scan's plain walls leave a render just enough corner-like patches for direct tracking, too few of
+    which align (office seed 61: 62-111 patches, no pose, so XFeat's poses, 0.24 deg RMSE, carried the walk). Where
+    the corners give no pose, the edge-like patches are taken too and the frame aligned again. Here the corners are
+    made just too few by asking that every one of them be in view and converge; the retry lands on the truth."""
+    from services.geometry.se3 import Pose
+    from services.io.sequence import open_sequence
+    from services.localize.render_match import _Frame
+
+    renderer, ext, _, _, _ = rm_setup
+    _, out, cam, _ = site_480
+    seq = open_sequence(out / "seq")
+    f = seq.read(2)
+    T = seq.groundtruth_pose(f.stamp)
+    start = T @ Pose.from_rotvec_t(np.radians([0.1, -0.2, 0.0]), [0.01, 0.0, 0.005])  # predicted 1 cm / 0.2 deg off
+    probe = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(direct_edge_corner=0))
+    corners = len(probe._direct_patches(probe._keyframe(T, _Frame(f.image, cam, {}, None, 0.0, None)))[0].lm_ids)
+    results = {}
+    for retry in (False, True):
+        cfg = RMConfig(direct_min_inliers=corners, direct_edge_retry=retry)
+        tr = RenderMatchTracker(renderer, ext, db=None, cfg=cfg)
+        fr = _Frame(f.image, cam, {}, None, 0.0, None)
+        kf = tr._keyframe(T, fr)
+        lp, _, _, edged = tr._direct_patches(kf)
+        assert len(lp.lm_ids) == corners and not edged  # corners enough to try
+        results[retry] = tr._direct(kf, fr, start)
+    assert results[False] is None  # not every corner aligns
+    r = results[True]
+    assert r is not None and r.source == "direct"
+    dt, dr = T.distance_to(r.T_wc)
+    assert dt < 0.005 and dr < 0.1, (dt, dr)

@@ -250,6 +250,11 @@ class RMConfig:
     direct_corner_quality: tuple[float, ...] = (0.005, 0.002)  # corner strength, relative to the render's strongest, for
     #                                     those patches; the next only when the first leaves fewer than direct_min_inliers
     #                                     (a close-up render: a few strong label edges outshine the rest)
+    direct_edge_retry: bool = True  # and where the corners were enough to try but give no pose, the frame is aligned
+    #                                 again with the edge-like patches too: a sparse scan's plain walls left 62-111
+    #                                 corners that did not align, and XFeat's poses there (0.24 deg RMSE, ~2-3x their
+    #                                 1-sigma) carried office seed 61 to 0.099 deg; twelve walks +38 frames, rotation
+    #                                 RMSE down on nine (seed 61 0.087, changed seed 8 0.107 -> 0.084 deg: stop 68)
     direct_edge_corner: float = 0.1  # and when both leave too few, patches down to this corner score: edges count too
     #                                  (the alignment weighs each by its gradients, so an edge still fixes where it lies
     #                                  across itself). Only then: on every render they cost office frames 0.033 -> 0.042
@@ -278,8 +283,9 @@ class Keyframe:
     ref_inliers: int = 0
     blurred_img: tuple | None = None  # (start pose, end pose, grey image) of the last blurred render
     blurred: tuple | None = None  # (features, world points, normalised grey) of that blurred render
-    direct: tuple | None = None  # (LandmarkPatches, world points, render pixels): corner patches, for direct tracking
-    direct_blurred: LandmarkPatches | None = None  # the same corners' patches cut from the blurred render
+    direct: dict = field(default_factory=dict)  # edges? -> (LandmarkPatches, world points, render pixels, edges taken):
+    #                                             corner patches for direct tracking (edges: the edge-like ones too)
+    direct_blurred: dict = field(default_factory=dict)  # edges? -> the same patches cut from the blurred render
     scene_points: np.ndarray | None = None  # world points of the render's measured depth (RenderMatchTracker._scene_depth)
     depth_m: float | None = None  # median measured depth of the render (the scan's error in the reported 1-sigma) ...
     scan_sigma_m: float | None = None  # ... and the stations' disagreement where it looks (scan_error.local_scan_sigma)
@@ -631,7 +637,7 @@ class RenderMatchTracker:
             if blur_length_px(fr.camera, Ta, Ta0) <= tol and blur_length_px(fr.camera, Tb, Tb0) <= tol:
                 return img, False
         img = self._blur_render(kf, fr, Ta, Tb, n)
-        kf.blurred_img, kf.blurred, kf.direct_blurred = (Ta, Tb, img), None, None
+        kf.blurred_img, kf.blurred, kf.direct_blurred = (Ta, Tb, img), None, {}
         return img, True
 
     def _blur_render(self, kf: Keyframe, fr: _Frame, Ta: Pose, Tb: Pose, n: int) -> np.ndarray:
@@ -767,17 +773,21 @@ class RenderMatchTracker:
             return self._blurred_points(kf, fr, exposure)
         return self._sharp_points(kf, fr)
 
-    def _direct_patches(self, kf: Keyframe) -> tuple[LandmarkPatches, np.ndarray, np.ndarray]:
+    def _direct_patches(self, kf: Keyframe, edges: bool = False) -> tuple[LandmarkPatches, np.ndarray, np.ndarray, bool]:
         """Corner patches of the keyframe render with the world points and surface normals behind them,
-        spread over the image (built once per keyframe)."""
-        if kf.direct is None:
+        spread over the image (built once per keyframe), and whether edge-like patches had to be taken too.
+        ``edges``: corners and edges alike (``direct_edge_corner``), whatever the corners alone would give."""
+        if edges not in kf.direct:
             r = kf.render
             gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
             h, w = gray.shape
             m = 12 * w / 640  # a patch's margin from the image border
             levels = [(q, self.cfg.direct_min_corner) for q in self.cfg.direct_corner_quality]
-            if self.cfg.direct_edge_corner > 0:
-                levels.append((self.cfg.direct_corner_quality[-1], self.cfg.direct_edge_corner))
+            edge_level = (self.cfg.direct_corner_quality[-1], self.cfg.direct_edge_corner)
+            if edges:
+                levels = [edge_level]
+            elif self.cfg.direct_edge_corner > 0:
+                levels.append(edge_level)
             for quality, min_corner in levels:  # weaker corners, then edges, only where the stronger ones cannot do
                 c = cv2.goodFeaturesToTrack(gray, maxCorners=8 * self.cfg.direct_points, qualityLevel=quality,
                                             minDistance=max(3.0, w / 80), blockSize=5)
@@ -799,8 +809,8 @@ class RenderMatchTracker:
             T_cw = kf.T_wc.inverse()
             lp = LandmarkPatches(np.arange(len(keep)), patches[keep], normals, np.zeros(len(keep), np.int64),
                                  np.column_stack([T_cw.R, T_cw.t])[None], cam.K.copy())
-            kf.direct = (lp, X[keep], uv[keep])
-        return kf.direct
+            kf.direct[edges] = (lp, X[keep], uv[keep], (quality, min_corner) == edge_level)
+        return kf.direct[edges]
 
     def _undistorted_gray(self, fr: _Frame) -> np.ndarray:
         """The frame in grey at full resolution, undistorted (float32), once per frame."""
@@ -812,25 +822,31 @@ class RenderMatchTracker:
         """Track without features on the frame: align it to the keyframe render's corner patches warped into the
         predicted view (:mod:`services.localize.direct`) and solve. None when it does not converge."""
         t0 = time.perf_counter()
-        lp, P, uv = self._direct_patches(kf)
         exposure = self._exposure(fr)
         blur = self._blur_px(fr, exposure)
-        if blur >= self.cfg.blur_min_px:  # a blurred frame aligns to the same corners cut from the blurred render
-            img, _ = self._blurred_image(kf, fr, exposure)
-            if kf.direct_blurred is None:
-                kf.direct_blurred = dataclasses.replace(lp, patches=np.clip(sample_patches(img, uv, lp.size) + 0.5, 0, 255).astype(np.uint8))
-            lp = kf.direct_blurred
         cam = fr.camera
         T_cw = T_pred.inverse()
-        Xc = P @ T_cw.R.T + T_cw.t
-        z = np.maximum(Xc[:, 2], 1e-6)
-        u, v = cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy
-        m = 12 * cam.width / 640
-        vis = np.flatnonzero((Xc[:, 2] > 0.1) & (u >= m) & (u < cam.width - 1 - m) & (v >= m) & (v < cam.height - 1 - m))
         need = max(self.cfg.min_inliers, self.cfg.direct_min_inliers)
         d, dc = None, DirectConfig(min_inliers=need, probe_sigmas=self.cfg.direct_probe_sigmas)
-        if len(vis) >= need:
-            d = align_and_solve(lp, vis, P[vis], T_cw.R, T_cw.t, cam.K, self._undistorted_gray(fr), dc)
+        for edges in (False, True):
+            lp, P, uv, edged = self._direct_patches(kf, edges)
+            if blur >= self.cfg.blur_min_px:  # a blurred frame aligns to the same corners cut from the blurred render
+                img, _ = self._blurred_image(kf, fr, exposure)
+                if edges not in kf.direct_blurred:
+                    kf.direct_blurred[edges] = dataclasses.replace(
+                        lp, patches=np.clip(sample_patches(img, uv, lp.size) + 0.5, 0, 255).astype(np.uint8))
+                lp = kf.direct_blurred[edges]
+            Xc = P @ T_cw.R.T + T_cw.t
+            z = np.maximum(Xc[:, 2], 1e-6)
+            u, v = cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy
+            m = 12 * cam.width / 640
+            vis = np.flatnonzero((Xc[:, 2] > 0.1) & (u >= m) & (u < cam.width - 1 - m) & (v >= m) & (v < cam.height - 1 - m))
+            if len(vis) >= need:
+                d = align_and_solve(lp, vis, P[vis], T_cw.R, T_cw.t, cam.K, self._undistorted_gray(fr), dc)
+            # corners that do not align (too few converge: a sparse scan's plain walls) are tried again with the
+            # edge-like patches too (direct_edge_retry)
+            if d is not None or edged or not self.cfg.direct_edge_retry or self.cfg.direct_edge_corner <= 0:
+                break
         fr.tm["direct_ms"] = fr.tm.get("direct_ms", 0.0) + 1e3 * (time.perf_counter() - t0)
         if d is None:
             log.debug("direct: no pose (%d of %d patches in view, %d needed, blur %.0f px)", len(vis), len(P), need, blur)
