@@ -1745,7 +1745,8 @@ def test_a_relocalized_pose_that_direct_alignment_from_it_disagrees_with_is_not_
     """A relocalization's XFeat pose is aligned once more directly from it; where the direct pose lands elsewhere
     beyond both covariances one of them is wrong, and the frame is not reported at the XFeat pose's own 1-sigma
     (office seed 8 frame 106: 0.97 deg off at 0.097 deg, the direct pose 0.08 deg from the truth), but tracked
-    from. Where the two agree the pose stays reportable. Real render, real direct alignment, against ground truth."""
+    from; unless the frame reads sharp, where the direct pose is taken. Where the two agree the pose stays
+    reportable. Real render, real direct alignment, against ground truth."""
     from services.geometry.pnp import PnpResult
     from services.geometry.se3 import Pose
     from services.io.sequence import open_sequence
@@ -1772,6 +1773,12 @@ def test_a_relocalized_pose_that_direct_alignment_from_it_disagrees_with_is_not_
         else:  # tracked from (the two combined, nearer the truth than XFeat's), never reported: process() says why
             assert tr._plausible(r) and dr < off_deg, (dt, dr, r.sigma_r_deg)
             assert r.disputed and "disagrees" in r.disputed, r.disputed
+            # a frame whose blur reads sharp (_reloc_blur) takes the direct pose: its sharp patches model the frame
+            fr.blur_read_px = 0.0
+            sharp = tr._polish(xfeat, fr, fuse=False)
+            assert sharp.source == "direct" and sharp.disputed is None and T.distance_to(sharp.T_wc)[1] < 0.1
+            fr.blur_read_px = 2.0 * tr.cfg.reloc_sharp_px  # read blurred: held back as before
+            assert tr._polish(xfeat, fr, fuse=False).disputed
 
 
 def test_corners_that_do_not_align_are_tried_again_with_edge_like_patches(rm_setup, site_480):

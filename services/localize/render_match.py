@@ -250,6 +250,11 @@ class RMConfig:
     direct_corner_quality: tuple[float, ...] = (0.005, 0.002)  # corner strength, relative to the render's strongest, for
     #                                     those patches; the next only when the first leaves fewer than direct_min_inliers
     #                                     (a close-up render: a few strong label edges outshine the rest)
+    reloc_sharp_px: float = 4.0  # a relocalizing frame whose blur reads under this (frame px, _reloc_blur) takes a good
+    #                              direct pose from the pose found even where the two disagree: its patches, cut
+    #                              sharp, model it (a blurred one's did not: stop 44), and XFeat's poses err 2-3x their
+    #                              1-sigma where direct ones err ~1x. Else the two disagreeing hold the frame back
+    #                              (_polish). Cold: seeds 8 / 90 23 -> 25, 22 -> 23 of 40; walks +5 frames (stop 68)
     direct_edge_retry: bool = True  # and where the corners were enough to try but give no pose, the frame is aligned
     #                                 again with the edge-like patches too: a sparse scan's plain walls left 62-111
     #                                 corners that did not align, and XFeat's poses there (0.24 deg RMSE, ~2-3x their
@@ -422,6 +427,7 @@ class _Frame:
     stamp: float | None = None  # capture time (s), when the caller gives it
     centred: bool = False  # matched against a render turned to where phase correlation put the blurred frame
     best_coarse: PnpResult | None = None  # the best coarse pose of the last relocalization search
+    blur_read_px: float | None = None  # a relocalizing frame's blur as read from the image (_reloc_blur), frame pixels
 
 
 CHI2_6DOF_1PCT = 16.81  # two pose estimates disagree beyond this chi-square (6 dof, 1 %)
@@ -960,8 +966,10 @@ class RenderMatchTracker:
             finally:
                 fr.motion, fr.exposure_s = saved
             if self._good(r2):  # its covariance scaled by this blur
+                fr.blur_read_px = length
                 return r2
         length = max(length, self._gap_blur_px(r.T_wc, fr))
+        fr.blur_read_px = length
         r.cov = self._blur_scaled(r.cov, length * self._base_scale(fr.camera) / r.px_factor)
         return r
 
@@ -1015,12 +1023,13 @@ class RenderMatchTracker:
         r2 = self._direct(self.kf, fr, r.T_wc)
         if r2 is None or self._far(r2.T_wc, self.kf) or not self._plausible(r2):
             return r
-        if self._good(r2) and (fuse or _agree(r, r2)):
+        sharp = fr.blur_read_px is not None and fr.blur_read_px < self.cfg.reloc_sharp_px
+        if self._good(r2) and (fuse or _agree(r, r2) or (sharp and self.cfg.reloc_sharp_px > 0)):
             return r2
         if fuse:
             return _fuse(r, r2) if self._good(r) else r  # two weak estimates do not make a reportable one
-        # a relocalization's direct pose that disagrees with it, by more than the accuracy promised, says one of the
-        # two is wrong: the combination is tracked from, not reported (office seed 8 frame 106, re-acquired from a
+        # a relocalization's direct pose that disagrees with it, by more than the accuracy promised, on a frame not
+        # read sharp, says one of the two is wrong: the combination is tracked from, not reported (office seed 8 frame 106, re-acquired from a
         # render 1.9 deg off: XFeat's pose stayed 0.97 deg off through a second render at it, and was reported at
         # 0.097 deg 1-sigma where direct alignment from it settled 0.08 deg from the truth, too uncertain to report
         # alone). Apart by less (a 960x720 frame's 0.5 cm / 0.07 deg, beyond its tiny covariances), it stands
