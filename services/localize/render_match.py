@@ -1017,22 +1017,26 @@ class RenderMatchTracker:
         relocalization the combination cost the 960x540 walk 13 of 113 frames, so there only a good one counts, and only
         where it agrees with the pose it polishes within their covariances: the patches are cut sharp, and a
         relocalizing frame has no motion to blur them by. A frame blurred 12 px, relocalized from patches cut blurred
-        (``_reloc_blur``), was moved 0.5 deg by the polish and reported 2.5 cm / 0.67 deg off at 0.08 deg 1-sigma.)"""
+        (``_reloc_blur``), was moved 0.5 deg by the polish and reported 2.5 cm / 0.67 deg off at 0.08 deg 1-sigma.
+        Since stop 68 a good direct pose also replaces it on a frame whose blur reads sharp (``reloc_sharp_px``), and
+        a plausible one that disagrees with it beyond the promise makes the combination ``disputed``: tracked from,
+        not reported.)"""
         if not self.cfg.direct_points or self.kf is None or not self._plausible(r):
             return r
         r2 = self._direct(self.kf, fr, r.T_wc)
         if r2 is None or self._far(r2.T_wc, self.kf) or not self._plausible(r2):
             return r
         sharp = fr.blur_read_px is not None and fr.blur_read_px < self.cfg.reloc_sharp_px
-        if self._good(r2) and (fuse or _agree(r, r2) or (sharp and self.cfg.reloc_sharp_px > 0)):
+        if self._good(r2) and (fuse or _agree(r, r2) or sharp):
             return r2
         if fuse:
             return _fuse(r, r2) if self._good(r) else r  # two weak estimates do not make a reportable one
-        # a relocalization's direct pose that disagrees with it, by more than the accuracy promised, on a frame not
-        # read sharp, says one of the two is wrong: the combination is tracked from, not reported (office seed 8 frame 106, re-acquired from a
-        # render 1.9 deg off: XFeat's pose stayed 0.97 deg off through a second render at it, and was reported at
-        # 0.097 deg 1-sigma where direct alignment from it settled 0.08 deg from the truth, too uncertain to report
-        # alone). Apart by less (a 960x720 frame's 0.5 cm / 0.07 deg, beyond its tiny covariances), it stands
+        # a relocalization's direct pose that disagrees with it by more than the accuracy promised, on a frame not
+        # read sharp, says one of the two is wrong: the combination is tracked from, not reported (office seed 8 frame
+        # 106, re-acquired from a render 1.9 deg off: XFeat's pose stayed 0.97 deg off through a second render at it,
+        # and was reported at 0.097 deg 1-sigma where direct alignment from it settled 0.08 deg from the truth, too
+        # uncertain to report alone). Apart by less (a 960x720 frame's 0.5 cm / 0.07 deg, beyond its tiny
+        # covariances), it stands
         dt, dr = r.T_wc.distance_to(r2.T_wc)
         coarse = max(1.0, r.px_deg / self.cfg.sigma_ref_px_deg)
         if _agree(r, r2) or (dt <= self.cfg.max_sigma_m * coarse and dr <= self.cfg.max_sigma_deg * coarse):
