@@ -1759,7 +1759,8 @@ def test_a_relocalized_pose_that_direct_alignment_from_it_disagrees_with_is_not_
     T = seq.groundtruth_pose(f.stamp)
     tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig())
     cov = np.diag([0.003 ** 2] * 3 + [np.radians(0.04) ** 2] * 3)  # inside the gate: reportable as it stands
-    for off_deg, reportable in ((0.0, True), (0.3, False)):  # 0.3 deg: 7 sigma off; direct alignment lands 0.03 deg from the truth
+    # 0.3 deg: 7 sigma off, where direct alignment from it lands 0.03 deg from the truth
+    for off_deg, reportable in ((0.0, True), (0.3, False)):
         fr = _Frame(f.image, cam, {}, None, 0.0, None, relocalizing=True)
         off = T @ Pose.from_rotvec_t(np.radians([0.0, off_deg, 0.0]), [0.0, 0.0, 0.0])
         tr.kf = tr._keyframe(off, fr)  # relocalizations render at the pose they verify
