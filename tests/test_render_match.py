@@ -1007,6 +1007,16 @@ def test_direct_tracking_needs_no_features_on_the_frame_and_stays_accurate(rm_se
         assert featureless >= 4 if direct else featureless == 0, (direct, featureless)
 
 
+def _frame_480(site_480, i: int):
+    """Frame ``i`` of ``site_480``'s walk, its ground-truth pose and its camera."""
+    from services.io.sequence import open_sequence
+
+    _, out, cam, _ = site_480
+    seq = open_sequence(out / "seq")
+    f = seq.read(i)
+    return f, seq.groundtruth_pose(f.stamp), cam
+
+
 def test_an_uncertain_direct_pose_is_checked_by_xfeat(rm_setup, site_480):
     """A direct pose far less certain than the gate (few corners) is checked by XFeat from it: where they disagree
     the more certain one is kept, where they agree they combine. A direct pose well inside its share of the gate
@@ -1015,14 +1025,10 @@ def test_an_uncertain_direct_pose_is_checked_by_xfeat(rm_setup, site_480):
 
     from services.geometry.pnp import PnpResult
     from services.geometry.se3 import Pose
-    from services.io.sequence import open_sequence
     from services.localize.render_match import _Frame
 
     renderer, ext, _, _, _ = rm_setup
-    _, out, cam, _ = site_480
-    seq = open_sequence(out / "seq")
-    f = seq.read(3)
-    T = seq.groundtruth_pose(f.stamp)
+    f, T, cam = _frame_480(site_480, 3)
     tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig())
     fr = _Frame(f.image, cam, {}, None, 0.0, None)
     kf = tr._keyframe(T, fr)
@@ -1749,14 +1755,10 @@ def test_a_relocalized_pose_that_direct_alignment_from_it_disagrees_with_is_not_
     reportable. Real render, real direct alignment, against ground truth."""
     from services.geometry.pnp import PnpResult
     from services.geometry.se3 import Pose
-    from services.io.sequence import open_sequence
     from services.localize.render_match import _Frame
 
     renderer, ext, _, _, _ = rm_setup
-    _, out, cam, _ = site_480
-    seq = open_sequence(out / "seq")
-    f = seq.read(3)
-    T = seq.groundtruth_pose(f.stamp)
+    f, T, cam = _frame_480(site_480, 3)
     tr = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig())
     cov = np.diag([0.003 ** 2] * 3 + [np.radians(0.04) ** 2] * 3)  # inside the gate: reportable as it stands
     # 0.3 deg: 7 sigma off, where direct alignment from it lands 0.03 deg from the truth
@@ -1788,14 +1790,10 @@ def test_corners_that_do_not_align_are_tried_again_with_edge_like_patches(rm_set
     the corners give no pose, the edge-like patches are taken too and the frame aligned again. Here the corners are
     made just too few by asking that every one of them be in view and converge; the retry lands on the truth."""
     from services.geometry.se3 import Pose
-    from services.io.sequence import open_sequence
     from services.localize.render_match import _Frame
 
     renderer, ext, _, _, _ = rm_setup
-    _, out, cam, _ = site_480
-    seq = open_sequence(out / "seq")
-    f = seq.read(2)
-    T = seq.groundtruth_pose(f.stamp)
+    f, T, cam = _frame_480(site_480, 2)
     start = T @ Pose.from_rotvec_t(np.radians([0.1, -0.2, 0.0]), [0.01, 0.0, 0.005])  # predicted 1 cm / 0.2 deg off
     probe = RenderMatchTracker(renderer, ext, db=None, cfg=RMConfig(direct_edge_corner=0))
     corners = len(probe._direct_patches(probe._keyframe(T, _Frame(f.image, cam, {}, None, 0.0, None)))[0].lm_ids)

@@ -1038,8 +1038,8 @@ class RenderMatchTracker:
         # uncertain to report alone). Apart by less (a 960x720 frame's 0.5 cm / 0.07 deg, beyond its tiny
         # covariances), it stands
         dt, dr = r.T_wc.distance_to(r2.T_wc)
-        coarse = max(1.0, r.px_deg / self.cfg.sigma_ref_px_deg)
-        if _agree(r, r2) or (dt <= self.cfg.max_sigma_m * coarse and dr <= self.cfg.max_sigma_deg * coarse):
+        gate_m, gate_deg = self._gate(r)
+        if _agree(r, r2) or (dt <= gate_m and dr <= gate_deg):
             return r
         why = f"direct alignment from the pose found disagrees with it ({100 * dt:.1f} cm / {dr:.2f} deg apart)"
         return dataclasses.replace(_fuse(r, r2, inflate=False), disputed=why)
@@ -1073,10 +1073,15 @@ class RenderMatchTracker:
                       100 * r.sigma_t_m, r.sigma_r_deg)
         if r is None:
             return False
-        coarse = max(1.0, r.px_deg / self.cfg.sigma_ref_px_deg)  # a low-resolution camera cannot do better
+        gate_m, gate_deg = self._gate(r)
         return (r.n_inliers >= self.cfg.min_inliers
                 and r.reproj_rmse_px <= self.cfg.max_rmse_px * r.px_factor
-                and r.sigma_t_m <= self.cfg.max_sigma_m * coarse * factor and r.sigma_r_deg <= self.cfg.max_sigma_deg * coarse * factor)
+                and r.sigma_t_m <= gate_m * factor and r.sigma_r_deg <= gate_deg * factor)
+
+    def _gate(self, r: PnpResult) -> tuple[float, float]:
+        """The 1-sigma report gate (m, deg) for ``r``'s camera: a low-resolution camera cannot do better."""
+        coarse = max(1.0, r.px_deg / self.cfg.sigma_ref_px_deg)
+        return self.cfg.max_sigma_m * coarse, self.cfg.max_sigma_deg * coarse
 
     def _consistent(self, r: PnpResult, predicted: Pose | None, dt: float) -> bool:
         """Whether a tracked pose is where the motion model could have taken the camera
