@@ -78,7 +78,10 @@ def test_a_scan_in_laser_intensity_alone_is_localized_against(rm_setup, small_si
     assert tr.min_agreement == pytest.approx(RMConfig().reloc_min_agreement * RMConfig().intensity_agreement)
     results = [tr.process(f.image, seq.camera, stamp=float(f.stamp)) for f in (seq.read(i) for i in range(len(seq)))]
     ok = [(i, r) for i, r in enumerate(results) if r.T_wc is not None]
-    assert any(r.status == Status.RELOCALIZED for _, r in ok) and len(ok) >= len(seq) // 2, [r.reason for r in results]
+    # started from the database with no prior: reported as relocalized, or re-acquired at a place found too uncertain
+    started = any(r.status == Status.RELOCALIZED for _, r in ok) or any(
+        (r.reason or "").endswith("at the place found") for r in results)
+    assert started and len(ok) >= len(seq) // 2, [r.reason for r in results]
     err = np.array([seq.groundtruth.poses[i].distance_to(r.T_wc) for i, r in ok])
     print("R&M small site in intensity, errors (m, deg):", np.sqrt((err ** 2).mean(0)))  # measured 4.1 cm, 0.43 deg
     assert np.sqrt((err[:, 0] ** 2).mean()) < 0.06 and np.sqrt((err[:, 1] ** 2).mean()) < 0.8, err
@@ -1683,6 +1686,33 @@ def test_a_relocalization_refused_after_its_render_says_why_and_the_look_around_
     lost = tr.process(f7.image, seq.camera, stamp=s6 + 0.1)
     assert lost.status == Status.LOST and reason_kind(lost.reason) == "no place in the database fits the frame", lost.reason
     assert lost.reason.endswith("views rendered where its motion led: no place was confirmed by a render)"), lost.reason
+
+
+def test_a_place_found_too_uncertain_to_report_is_reacquired_at_by_the_next_frame(rm_setup):
+    """A relocalization whose place its render confirms, passing every check but the report gate (a blurred frame, a
+    plain view: office seed 2's frames 251-259 were each found again at 0.11-0.20 deg 1-sigma), leaves that place to
+    the next frame, which is rendered at it and matched again, as at a last good pose, instead of searching the
+    database once more; with ``reloc_track_unsure`` off it searches. Real render, real XFeat, against ground truth."""
+    renderer, ext, db, seq, _ = rm_setup
+    f6, f7 = seq.read(6), seq.read(7)
+    tight = RMConfig(max_sigma_m=1e-9, max_sigma_deg=1e-9, track_sigma_factor=1e12)  # every pose plausible, none good
+    for track in (True, False):
+        tr = RenderMatchTracker(renderer, ext, db, dataclasses.replace(tight, reloc_track_unsure=track))
+        r = tr.process(f6.image, seq.camera, stamp=float(f6.stamp))
+        assert r.status == Status.LOST and r.reason.endswith("1-sigma) at the place found"), r.reason
+        assert tr.T_last is None  # not tracked from: the next frame re-acquires or searches
+        if track:
+            dt, dr = seq.groundtruth.poses[6].distance_to(tr.recent[0])
+            assert dt < 0.05 and dr < 1.0, (dt, dr)
+        else:
+            assert tr.recent is None
+        tr.cfg = dataclasses.replace(tr.cfg, max_sigma_m=RMConfig().max_sigma_m, max_sigma_deg=RMConfig().max_sigma_deg,
+                                     track_sigma_factor=RMConfig().track_sigma_factor)
+        r = tr.process(f7.image, seq.camera, stamp=float(f7.stamp))
+        assert r.status == Status.RELOCALIZED, r.reason
+        assert ("relocalize_ms" in r.timings) is not track, r.timings  # the database searched only when not kept
+        dt, dr = seq.groundtruth.poses[7].distance_to(r.T_wc)
+        assert dt < 0.05 and dr < 1.0, (track, dt, dr)
 
 
 def test_a_lost_stretch_verifies_a_place_again_on_the_render_it_made_for_the_frame_before(rm_setup):

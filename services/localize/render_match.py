@@ -260,6 +260,12 @@ class RMConfig:
     #                                 corners that did not align, and XFeat's poses there (0.24 deg RMSE, ~2-3x their
     #                                 1-sigma) carried office seed 61 to 0.099 deg; twelve walks +38 frames, rotation
     #                                 RMSE down on nine (seed 61 0.087, changed seed 8 0.107 -> 0.084 deg: stop 68)
+    reloc_track_unsure: bool = True  # a place a relocalization's render confirms, passing every check but too uncertain
+    #                                  to report (a blurred frame, a plain view), is not reported but kept as a last good
+    #                                  pose is: the next frame is rendered at it and matched again (re-acquired, polished
+    #                                  and checked as a relocalization) before the database is searched once more (office
+    #                                  seed 2 frames 251-259 were each found again at 0.11-0.20 deg 1-sigma and LOST).
+    #                                  Tracking on from it instead reported frames 0.15-0.2 deg off at 0.06 (stop 69)
     direct_edge_corner: float = 0.1  # and when both leave too few, patches down to this corner score: edges count too
     #                                  (the alignment weighs each by its gradients, so an edge still fixes where it lies
     #                                  across itself). Only then: on every render they cost office frames 0.033 -> 0.042
@@ -1125,6 +1131,7 @@ class RenderMatchTracker:
                     T = r.T_wc
                     continue
                 if keep_unsure and self._plausible(r):
+                    kf.ref_inliers, self.kf = r.n_inliers, kf  # (a relocalization may track from it: _relocalize)
                     return r
                 return None
             kf.ref_inliers = r.n_inliers
@@ -1214,14 +1221,18 @@ class RenderMatchTracker:
             fr.reason = f"ambiguous place: {why}"
             return None
         found: tuple[PnpResult, PnpResult, Keyframe] | None = None  # (coarse, verified, its keyframe)
+        unsure: tuple[PnpResult, PnpResult, Keyframe] | None = None  # the same for a place too uncertain to report
         for coarse, _ in hyps[:cfg.reloc_verify]:
             if coarse.n_inliers < need or (found is not None and coarse.n_inliers < cfg.reloc_rival_verify * found[0].n_inliers):
                 break
             r = self._reacquire(fr, coarse.T_wc, reuse=True, keep_unsure=True)
-            if not self._good(r):
-                if r is not None and fr.reason is None:  # confirmed by its render, but the frame's blur leaves it unsure
-                    fr.reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg "
-                                 f"1-sigma) at the place found")
+            if r is None:
+                continue
+            sure = self._good(r)
+            if not sure and fr.reason is None:  # confirmed by its render, but the frame's blur leaves it unsure
+                fr.reason = (f"pose too uncertain to report ({100 * r.sigma_t_m:.1f} cm / {r.sigma_r_deg:.2f} deg "
+                             f"1-sigma) at the place found")
+            if not sure and (not cfg.reloc_track_unsure or unsure is not None or found is not None):
                 continue
             if reach is not None and np.linalg.norm(r.T_wc.t - reach[0]) > reach[1]:
                 fr.reason = (f"place out of reach: found {np.linalg.norm(r.T_wc.t - reach[0]):.1f} m from where the camera "
@@ -1244,6 +1255,9 @@ class RenderMatchTracker:
                              f"{walk[1]:.1f} m through the scan's free space")
                 log.info("relocalization %s", fr.reason)
                 continue
+            if not sure:  # a place that passes every check but the report gate: tracked from if none is sure
+                unsure = (coarse, r, self.kf)
+                continue
             if found is not None and not self._same_place(found[1], r):  # a second place passes too: a repetitive site
                 fr.reason = f"ambiguous place: verified at places {found[1].T_wc.distance_to(r.T_wc)[0]:.1f} m apart"
                 log.info("relocalization %s", fr.reason)
@@ -1251,10 +1265,10 @@ class RenderMatchTracker:
             if found is not None:  # the same place again (two coarse poses of it, a metre apart)
                 continue
             found = (coarse, r, self.kf)
-        if found is None:
+        if found is None and unsure is None:
             fr.reason = fr.reason or "no place in the database was confirmed by a render"
             return None
-        coarse, r, self.kf = found
+        coarse, r, self.kf = found or unsure
         t0 = time.perf_counter()  # about to be reported: is there another place it fits as well?
         fraction = cfg.reloc_check_fraction if near is not None else max(cfg.reloc_check_fraction, cfg.reloc_cold_check_fraction)
         check = max(cfg.reloc_check, int(np.ceil(fraction * db.n_views)))
@@ -1399,6 +1413,7 @@ class RenderMatchTracker:
         r: PnpResult | None = None
         rerendered = False
         cold = False  # relocalized with nothing to say where the camera was (see _Anchor.confirmed)
+        unsure: PnpResult | None = None  # a relocalization's place too uncertain to report (reloc_track_unsure)
         predicted: Pose | None = None  # where the motion model put this frame, when it had a motion
         if prior is not None and self.T_last is None:
             self.T_last = prior
@@ -1518,16 +1533,20 @@ class RenderMatchTracker:
                     if tight < near[1]:
                         reach = (a.position + a.velocity * dt, tight)
             r = self._relocalize(fr, near, reach, walk)
-            if not self._plausible(r) and a is not None and near is not None:
-                r = self._look_around(fr, a, near, reach, walk) or r
+            if not self._good(r) and a is not None and near is not None:  # (a place too uncertain to report: looked for
+                r = self._look_around(fr, a, near, reach, walk) or r      #  a sure one around, else tracked from)
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1
                 rerendered = True
                 cold = near is None
+            elif self._plausible(r):  # a place confirmed but too uncertain to report: the next frame is re-acquired at it
+                unsure = r           # (as at a last good pose: rendered at and matched again, polished, checked)
         fr.tm["total_ms"] = 1e3 * (time.perf_counter() - t_start)
-        if not self._plausible(r):
-            if self.T_last is not None:
+        if not self._plausible(r) or unsure is not None:
+            if unsure is not None:
+                self.recent, self.lost_frames = (unsure.T_wc, stamp), 0
+            elif self.T_last is not None:
                 self.recent, self.lost_frames = (self.T_last, self.stamp_last), 0
             self._lose()
             self.T_last = self.carry.lost(carry, fr.dt_next)
