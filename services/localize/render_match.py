@@ -1131,7 +1131,7 @@ class RenderMatchTracker:
                     T = r.T_wc
                     continue
                 if keep_unsure and self._plausible(r):
-                    kf.ref_inliers, self.kf = r.n_inliers, kf  # (a relocalization may track from it: _relocalize)
+                    kf.ref_inliers, self.kf = r.n_inliers, kf  # (a relocalization may keep it: _relocalize)
                     return r
                 return None
             kf.ref_inliers = r.n_inliers
@@ -1255,7 +1255,7 @@ class RenderMatchTracker:
                              f"{walk[1]:.1f} m through the scan's free space")
                 log.info("relocalization %s", fr.reason)
                 continue
-            if not sure:  # a place that passes every check but the report gate: tracked from if none is sure
+            if not sure:  # a place that passes every check but the report gate: kept (re-acquired at) if none is sure
                 unsure = (coarse, r, self.kf)
                 continue
             if found is not None and not self._same_place(found[1], r):  # a second place passes too: a repetitive site
@@ -1534,7 +1534,7 @@ class RenderMatchTracker:
                         reach = (a.position + a.velocity * dt, tight)
             r = self._relocalize(fr, near, reach, walk)
             if not self._good(r) and a is not None and near is not None:  # (a place too uncertain to report: looked for
-                r = self._look_around(fr, a, near, reach, walk) or r      #  a sure one around, else tracked from)
+                r = self._look_around(fr, a, near, reach, walk) or r      #  a sure one around, else kept)
             if self._good(r):
                 status = Status.RELOCALIZED
                 self.relocalizations += 1
