@@ -840,10 +840,11 @@ class RenderMatchTracker:
         T_cw = T_pred.inverse()
         need = max(self.cfg.min_inliers, self.cfg.direct_min_inliers)
         d, dc = None, DirectConfig(min_inliers=need, probe_sigmas=self.cfg.direct_probe_sigmas)
+        # a blurred frame aligns to the same corners cut from the render blurred with its motion
+        img = self._blurred_image(kf, fr, exposure)[0] if blur >= self.cfg.blur_min_px else None
         for edges in (False, True):
             lp, P, uv, edged = self._direct_patches(kf, edges)
-            if blur >= self.cfg.blur_min_px:  # a blurred frame aligns to the same corners cut from the blurred render
-                img, _ = self._blurred_image(kf, fr, exposure)
+            if img is not None:
                 if edges not in kf.direct_blurred:
                     kf.direct_blurred[edges] = dataclasses.replace(
                         lp, patches=np.clip(sample_patches(img, uv, lp.size) + 0.5, 0, 255).astype(np.uint8))
