@@ -37,7 +37,8 @@ rejected    the request was invalid (``error`` + ``reason`` say why); the client
 
 Quality: ``inliers``, ``rmse_px`` (inlier reprojection RMSE), ``sigma_m`` / ``sigma_deg`` (predicted
 1-sigma camera-centre and orientation uncertainty from the inlier geometry, scaled up with the frame's
-motion blur, under which matches err more than their scatter shows), ``timings`` (ms per
+motion blur, under which matches err more than their scatter shows), ``source`` (what solved a reported pose:
+``features``, matched keypoints; ``direct``, image patches aligned to the render or map; ``fused``, both), ``timings`` (ms per
 server stage that ran for the frame: ``decode_ms``, ``queue_ms``, ``direct_ms`` (tracked by patch alignment, no
 features on the frame), ``features_ms``, ``render_ms``, ``match_ms``, ``pose_ms``, ``relocalize_ms``,
 ``total_ms``), ``server_id`` and ``map_id``.
@@ -249,6 +250,7 @@ class PoseReply(_Msg):
     map: str = ""
     error: ErrorCode | None = None
     reason: str | None = None
+    source: str | None = None  # what solved the pose (only with one): "features", "direct", "fused"
 
     @model_validator(mode="after")
     def _consistent(self) -> "PoseReply":

@@ -246,7 +246,8 @@ def test_cli_eval_weighs_errors_against_the_predicted_uncertainty(tmp_path, caps
     write_tum(tmp_path / "gt.txt", gt)
     write_tum(tmp_path / "est.txt", est)
     recs = [FrameRecord(s, "LOST", reason="no place") if i in (3, 4) else
-            FrameRecord(s, "RELOCALIZED" if i == 0 else "TRACKING", 100, 0.8, 0.01 if i >= 42 else 0.05, 1.0)
+            FrameRecord(s, "RELOCALIZED" if i == 0 else "TRACKING", 100, 0.8, 0.01 if i >= 42 else 0.05, 1.0,
+                        source="features" if i >= 42 else "direct")
             for i, s in enumerate(gt.stamps)]
     write_frame_log(frame_log_path(tmp_path / "est.txt"), recs)
     rc = main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--align", "se3", "--plots",
@@ -255,12 +256,39 @@ def test_cli_eval_weighs_errors_against_the_predicted_uncertainty(tmp_path, caps
     s = json.loads(out.strip().splitlines()[-1])
     assert rc == 0 and s["uncertainty_n"] == 48 and s["uncertainty_beyond_3sigma"] == 8, s  # (in the scan frame)
     assert s["uncertainty_t_ratio_median"] == pytest.approx(2.0) and "8 beyond 3 sigma" in out
+    # the error by what solved each pose (the log's source column): 40 aligned directly, 8 by keypoints
+    assert {k: v["n"] for k, v in s["by_source"].items()} == {"direct": 40, "features": 8}, s["by_source"]
+    assert s["by_source"]["features"]["trans_rmse_m"] == pytest.approx(0.1) and "direct 40 poses, 10.00 cm" in out
     assert (tmp_path / "plots" / "uncertainty.png").stat().st_size > 10_000
     assert pixels_of(tmp_path / "plots" / "trajectory.png", RELOC_COLOR) > 20  # the log's relocalization marked
     # a log that is not one: a clear error, exit 2
     (tmp_path / "x.csv").write_text("stamp,pose\n1,2\n")
     assert main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--frame-log", str(tmp_path / "x.csv")]) == 2
     assert "not a frame log" in capsys.readouterr().err
+
+
+def test_the_frame_log_round_trips_and_reads_logs_written_before_its_source_column(tmp_path):
+    """Every field survives a write and a read (a reason with commas and quotes included); a log from before the
+    source column (seven columns) is still read, its sources empty; a row with a field missing is a clear error."""
+    from services.io.frame_log import FrameLogError, FrameRecord, read_frame_log, write_frame_log
+
+    recs = [FrameRecord("1.000000", "RELOCALIZED", 120, 0.9, 0.004, 0.05, source="fused"),
+            FrameRecord("1.033333", "TRACKING", 118, 0.91, 0.0032, 0.071, source="direct"),
+            FrameRecord("1.066667", "LOST", 12, 2.5, reason='ambiguous place: 2 places, "far" apart', source="features"),
+            FrameRecord("1.100000", "LOST", reason="unreadable image: truncated")]
+    write_frame_log(tmp_path / "t.frames.csv", recs)
+    back = read_frame_log(tmp_path / "t.frames.csv")
+    assert list(back) == [r.stamp for r in recs]
+    for r, b in zip(recs, back.values()):
+        assert (b.status, b.inliers, b.reason, b.source) == (r.status, r.inliers, r.reason, r.source)
+        assert np.allclose([b.rmse_px, b.sigma_m, b.sigma_deg], [r.rmse_px, r.sigma_m, r.sigma_deg], equal_nan=True)
+    (tmp_path / "old.csv").write_text("stamp,status,inliers,rmse_px,sigma_cm,sigma_deg,reason\n"
+                                      "1.0,TRACKING,118,0.91,0.32,0.071,\n1.1,LOST,0,,,,no pose\n")
+    old = read_frame_log(tmp_path / "old.csv")
+    assert old["1.0"].sigma_m == pytest.approx(0.0032) and old["1.0"].source == "" and old["1.1"].reason == "no pose"
+    (tmp_path / "bad.csv").write_text("stamp,status,inliers,rmse_px,sigma_cm,sigma_deg,source,reason\n1.0,TRACKING,1\n")
+    with pytest.raises(FrameLogError, match="bad.csv:2: expected 8 fields"):
+        read_frame_log(tmp_path / "bad.csv")
 
 
 def test_a_picture_that_cannot_be_drawn_costs_a_warning_not_the_run(tmp_path, caplog):

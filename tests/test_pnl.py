@@ -114,6 +114,7 @@ def _check_frame_log(traj_path, seq, est, tmp_path):
     assert {k for k, r in log.items() if r.status != "LOST"} == posed
     for k in posed:
         assert 0 < log[k].sigma_m <= 0.01 and 0 < log[k].sigma_deg <= 0.1 and log[k].inliers >= 30, log[k]
+        assert log[k].source in ("features", "direct"), log[k]  # what solved it: ORB keypoints or aligned patches
     assert all(r.reason for r in log.values() if r.status == "LOST")
     r = _cli("eval", seq.root / "groundtruth.txt", traj_path, "--align", "none", "--plots", tmp_path / "plots")
     assert r.returncode == 0, r.stdout + r.stderr

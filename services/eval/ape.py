@@ -22,7 +22,7 @@ from services.geometry.se3 import Pose
 from services.io.trajectory import Trajectory
 
 __all__ = ["ALIGNMENTS", "ApeResult", "DegenerateAlignment", "umeyama", "associate", "compute_ape", "evaluate",
-           "uncertainty_check"]
+           "errors_by_source", "uncertainty_check"]
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +186,23 @@ def ape_first_frames(gt: Trajectory, est: Trajectory, n: int) -> tuple[str, dict
     line = (f"APE (no alignment): translation RMSE {100 * a.trans_rmse:.2f} cm, rotation RMSE {a.rot_rmse_deg:.3f} deg, "
             f"{a.fraction:.1%} of frames")
     return line, {"ape_none_trans_rmse_m": a.trans_rmse, "ape_none_rot_rmse_deg": a.rot_rmse_deg, "fraction": a.fraction}
+
+
+def errors_by_source(result: ApeResult, records: dict) -> dict[str, dict]:
+    """The errors of ``result``'s poses grouped by what solved each (``records``' ``source``: "features", "direct",
+    "fused"; "" where the log has none): {source: {"n", "trans_rmse_m", "rot_rmse_deg", "trans_max_m",
+    "rot_max_deg"}}, most poses first. A walk's error usually sits with one of them (Render & Match: the poses XFeat
+    alone solved, where too few patches aligned)."""
+    groups: dict[str, list[int]] = {}
+    for i, s in enumerate(result.stamps):
+        groups.setdefault(records[s].source if s in records else "", []).append(i)
+    out = {}
+    for src, idx in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        te, re = result.trans_err[idx], result.rot_err_deg[idx]
+        out[src] = {"n": len(idx), "trans_rmse_m": float(np.sqrt(np.mean(te ** 2))),
+                    "rot_rmse_deg": float(np.sqrt(np.mean(re ** 2))), "trans_max_m": float(te.max()),
+                    "rot_max_deg": float(re.max())}
+    return out
 
 
 def uncertainty_check(result: ApeResult, records: dict) -> dict:

@@ -14,7 +14,10 @@ examples:
 Uncertainty: `cristal localize --out est.txt` also writes est.frames.csv (every frame's status,
 inliers and predicted 1-sigma). When it is there (or given with --frame-log), eval also counts the
 poses whose error exceeds 3 times the 1-sigma they were reported with (in the scan frame, no
-alignment), and with --plots draws uncertainty.png: error against predicted 1-sigma.
+alignment), and with --plots draws uncertainty.png: error against predicted 1-sigma. It also
+breaks the error down by what solved each pose (the log's source column: "features", matched
+keypoints; "direct", image patches aligned to the render or map; "fused", both), which usually
+tells where a walk's error sits.
 
 Frames are matched by their exact timestamp text; an estimated timestamp missing from the
 ground truth is an error (use --lenient to ignore such frames). 'fraction' is the share of
@@ -75,10 +78,15 @@ def _frame_log(args) -> tuple[str, dict] | None:
 
 def _uncertainty(args, gt, est, results, path: str, records: dict) -> dict:
     """services.eval.ape.uncertainty_check against the frame log ``records`` (read from ``path``). Prints a line."""
-    from services.eval.ape import compute_ape, uncertainty_check
+    from services.eval.ape import compute_ape, errors_by_source, uncertainty_check
 
     none = results.get("none") or compute_ape(gt, est, "none", strict=not args.lenient)
     c = uncertainty_check(none, records)
+    c["by_source"] = by = errors_by_source(none, records)
+    if len(by) > 1 or "" not in by:
+        print("error by what solved the pose (no alignment): " + "; ".join(
+            f"{src or 'not logged'} {g['n']} poses, {100 * g['trans_rmse_m']:.2f} cm / {g['rot_rmse_deg']:.3f} deg RMSE "
+            f"(worst {100 * g['trans_max_m']:.2f} cm / {g['rot_max_deg']:.2f} deg)" for src, g in by.items()))
     if c["n"]:
         print(f"predicted uncertainty ({path}): {c['n']} poses with a 1-sigma; error / 1-sigma median "
               f"{c['t_ratio_median']:.2f} (centre), {c['r_ratio_median']:.2f} (orientation); "
@@ -123,6 +131,7 @@ def run(args) -> int:
     check = None if frame_log is None else _uncertainty(args, gt, est, results, *frame_log)
     if check is not None:
         summary.update({f"uncertainty_{k}": check[k] for k in ("n", "beyond_3sigma", "t_ratio_median", "r_ratio_median")})
+        summary["by_source"] = check["by_source"]
     if args.plots:
         from services.eval.plots import plot_errors, plot_trajectory_topdown, plot_uncertainty
 

@@ -209,6 +209,12 @@ class PnlResult:
     sigma_m: float = float("nan")  # predicted 1-sigma camera-centre uncertainty
     sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
     reason: str | None = None  # why a LOST frame has no pose
+    source: str | None = None  # what solved the pose: "features" (ORB keypoints) or "direct" (patches); None: no pose
+
+
+def _source(r) -> str | None:
+    """The ``source`` of a pose tuple (R, t, inliers, rmse, sigma_m, sigma_deg, direct)."""
+    return None if r is None else "direct" if r[6] else "features"
 
 
 class _MapIndex:
@@ -1246,7 +1252,7 @@ class PnlLocalizer:
                 self._vel = None
             self._trusted()
             return PnlResult(Status.LOST, None, 0 if r is None else r[2], float("nan") if r is None else r[3], tm,
-                             reason=fr.reason or "no pose")
+                             reason=fr.reason or "no pose", source=_source(r))
         R, t, n, rmse, sig_m, sig_deg, _ = r
         T_wc = Pose(R.T, -R.T @ t)
         self._sigma_last = sig_m
@@ -1282,15 +1288,15 @@ class PnlLocalizer:
             self._slipped |= fr.unchecked or not self._within(r, fr, self.cfg.confirm_beyond * self.cfg.max_sigma_m,
                                                                self.cfg.confirm_beyond * self.cfg.max_sigma_deg)
             if unconfirmed is not None:
-                return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg, unconfirmed)
+                return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg, unconfirmed, _source(r))
             return PnlResult(Status.LOST, None, n, rmse, tm, sig_m, sig_deg,
                              f"pose too uncertain to report ({100 * sig_m:.1f} cm / {sig_deg:.2f} deg 1-sigma)"
-                             if not self._good(r, fr) else NOT_UNDONE)
+                             if not self._good(r, fr) else NOT_UNDONE, _source(r))
         self.T_last, self._near = T_wc, None
         self._trusted()
         if self.cfg.scan_sigma_m:
             sig_m, sig_deg = with_scan_error(sig_m, sig_deg, *self._view_floor(T_wc))
-        return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg)
+        return PnlResult(status, T_wc, n, rmse, tm, sig_m, sig_deg, source=_source(r))
 
     def _view_floor(self, T_wc: Pose) -> tuple[float, float]:
         """(the stations' disagreement where its landmarks lie, their median depth) for the map's keyframe nearest

@@ -332,6 +332,7 @@ class FrameResult:
     sigma_deg: float = float("nan")  # predicted 1-sigma orientation uncertainty
     blur_px: float = 0.0  # predicted motion blur of the frame (pixels) the render was blurred with
     reason: str | None = None  # why a LOST frame has no pose (an ambiguous place, too uncertain a pose, ...)
+    source: str | None = None  # what solved the pose (PnpResult.source: "features", "direct", "fused"); None: no pose
 
 
 def _parabolic_peak(x: np.ndarray, y: np.ndarray) -> float:
@@ -1554,7 +1555,8 @@ class RenderMatchTracker:
             self.stamp_last = stamp if self.T_last is not None else None
             reason = fr.reason or ("no database to relocalize from" if self.db is None else "no pose")
             return FrameResult(Status.LOST, None, 0 if r is None else r.n_inliers,
-                               float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm, reason=reason)
+                               float("nan") if r is None else r.reproj_rmse_px, rerendered, fr.tm, reason=reason,
+                               source=None if r is None else r.source)
         reacquired = self.carry.tracked() and status == Status.TRACKING  # tracked from a pose the odometry carried
         status = Status.RELOCALIZED if reacquired else status
         self.motion_tracked = consecutive and status == Status.TRACKING
@@ -1610,7 +1612,8 @@ class RenderMatchTracker:
                       or "pose away from where the motion leads")
         sigma_m, sigma_deg = with_scan_error(r.sigma_t_m, r.sigma_r_deg, *self._view_floor())
         return FrameResult(status if good else Status.LOST, r.T_wc if good else None, r.n_inliers, r.reproj_rmse_px,
-                           rerendered, fr.tm, sigma_m, sigma_deg, self._blur_px(fr, self._exposure(fr)), reason)
+                           rerendered, fr.tm, sigma_m, sigma_deg, self._blur_px(fr, self._exposure(fr)), reason,
+                           r.source)
 
     def _view_floor(self) -> tuple[float, float]:
         """(the stations' disagreement where the camera looks, the median measured depth) of the keyframe the last pose

@@ -73,7 +73,7 @@ def localize_sequence(loc, seq, n: int, progress_desc: str = "localizing", stamp
             poses[i] = r.T_wc
             if records is not None:
                 records.append(FrameRecord(frame.stamp, r.status.name, int(r.inliers), float(r.rmse_px),
-                                           float(r.sigma_m), float(r.sigma_deg), reason or ""))
+                                           float(r.sigma_m), float(r.sigma_deg), reason or "", r.source or ""))
             if backfill is not None and seq.files is None:  # a video: no going back to its frames
                 if i > 0 and (poses[i] is None) != (poses[i - 1] is None) and i - 1 not in kept:
                     kept[i - 1] = _png(prev)

@@ -34,6 +34,7 @@ class TrackResult:
     sigma_deg: float = float("nan")
     timings: dict[str, float] = field(default_factory=dict)
     reason: str | None = None  # why a LOST frame has no pose
+    source: str | None = None  # what solved the pose: "features", "direct", "fused" (the frame log's column)
 
 
 def _status(s) -> str:
@@ -56,7 +57,7 @@ class _RMTracker:
         r = self.t.process(image, camera, prior, stamp=stamp, motion=motion, exposure_s=exposure_s, readout_s=readout_s,
                            near=near)
         return TrackResult(_status(r.status), r.T_wc, int(r.inliers), float(r.rmse_px), float(r.sigma_m),
-                           float(r.sigma_deg), dict(r.timings), getattr(r, "reason", None))
+                           float(r.sigma_deg), dict(r.timings), getattr(r, "reason", None), r.source)
 
 
 class RMBackend:
@@ -134,8 +135,8 @@ class _PnlTracker:
                 near=None) -> TrackResult:
         # odometry: predicts, carries through LOST
         r = self.loc.process(image, camera, prior, motion=motion, stamp=stamp, readout_s=readout_s, near=near)
-        return TrackResult(_status(r.status), r.T_wc, int(getattr(r, "inliers", 0)), float(getattr(r, "rmse_px", np.nan)),
-                           timings=dict(getattr(r, "timings", {}) or {}), reason=getattr(r, "reason", None))
+        return TrackResult(_status(r.status), r.T_wc, int(r.inliers), float(r.rmse_px), float(r.sigma_m),
+                           float(r.sigma_deg), dict(r.timings or {}), r.reason, r.source)
 
 
 class PnlBackend:

@@ -512,7 +512,8 @@ class LocalizationServer:
                         inliers=int(r.inliers), rmse_px=_finite(r.rmse_px), sigma_m=_finite(r.sigma_m),
                         sigma_deg=_finite(r.sigma_deg), timings={k: round(v, 3) for k, v in tm.items()},
                         server=self.cfg.server_id, map=self.cfg.map_id,
-                        reason=(getattr(r, "reason", None) or None) if status is Status.LOST else None)
+                        reason=(getattr(r, "reason", None) or None) if status is Status.LOST else None,
+                        source=r.source if status.has_pose else None)
         self._count(status)
         if self.m:
             self.m["latency"].labels(**self._lbl).observe(total)
