@@ -11,7 +11,8 @@ it prints frames localized, APE with no alignment, the worst reported frame's tr
 (not judged: a frame far beyond the 1 cm / 0.1 degree promise shows there before it counts as off), the frames
 reported beyond 5 cm or 1 degree of the truth ("off", which must stay 0), the poses whose error exceeds 3 times
 the 1-sigma they were reported with ("> 3σ", from the localizer's TRAJ.frames.csv: how honest its uncertainty is;
-not judged), and the change against the baseline file. A row is a regression when it loses more than
+not judged), the rotation RMSE of the poses by what solved them ("by source": direct, features, fused, from the
+same log: where the walk's error sits), and the change against the baseline file. A row is a regression when it loses more than
 --tolerance frames, reports a frame off that the baseline did not, or its translation APE grows by more than
 15 % + 0.05 cm; the exit status is then 1. --update writes this run's numbers as the new baseline (commit it with
 the change that moved them).
@@ -33,7 +34,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from services.eval.ape import compute_ape, uncertainty_check  # noqa: E402
+from services.eval.ape import compute_ape, errors_by_source, uncertainty_check  # noqa: E402
 from services.io.frame_log import frame_log_path, read_frame_log  # noqa: E402
 from services.io.trajectory import read_tum  # noqa: E402
 
@@ -65,13 +66,15 @@ def run(site: Path, method: str, out: Path, extra: tuple[str, ...] = ()) -> dict
     res = cristal("-q", "localize", *inputs(site, method), "--out", str(out), *extra)
     s = json.loads(res.stdout.strip().splitlines()[-1])
     a = compute_ape(read_tum(site / "seq_00" / "groundtruth.txt"), read_tum(out), "none", strict=False)
-    check = uncertainty_check(a, read_frame_log(frame_log_path(out)))  # each pose against its own predicted 1-sigma
+    log = read_frame_log(frame_log_path(out))
+    check = uncertainty_check(a, log)  # each pose against its own predicted 1-sigma
+    by = {src or "?": [g["n"], round(g["rot_rmse_deg"], 3)] for src, g in errors_by_source(a, log).items()} if len(a.stamps) else {}
     return {"frames": int(s["frames"]), "localized": int(s["localized"]),
             "ape_cm": round(100 * s["ape_none_trans_rmse_m"], 3), "ape_deg": round(s["ape_none_rot_rmse_deg"], 4),
             "off": int(((a.trans_err > OFF_M) | (a.rot_err_deg > OFF_DEG)).sum()),
             "max_cm": round(100 * float(a.trans_err.max(initial=0.0)), 2),
             "max_deg": round(float(a.rot_err_deg.max(initial=0.0)), 3),
-            "beyond_3sigma": check["beyond_3sigma"], "fps": round(s["fps"], 1), "wall_s": round(time.perf_counter() - t0, 1),
+            "beyond_3sigma": check["beyond_3sigma"], "by_source": by, "fps": round(s["fps"], 1), "wall_s": round(time.perf_counter() - t0, 1),
             "site": fingerprint(site, method)}
 
 
@@ -111,8 +114,8 @@ def main() -> int:
     base = json.loads(args.baseline.read_text()) if args.baseline.is_file() else {}
     args.out.mkdir(parents=True, exist_ok=True)
     now, bad = {}, 0
-    print("| site | method | frames | APE cm / deg | worst cm / deg | off | > 3σ | FPS | baseline | verdict |")
-    print("|---|---|---:|---|---|---:|---:|---:|---|---|")
+    print("| site | method | frames | APE cm / deg | worst cm / deg | off | > 3σ | by source: poses, deg | FPS | baseline | verdict |")
+    print("|---|---|---:|---|---|---:|---:|---|---:|---|---|")
     for name in names:
         for method in args.methods:
             site = args.root / name
@@ -125,7 +128,9 @@ def main() -> int:
             bad += v.startswith("**REGRESSION")
             was = "-" if b is None else f"{b['localized']}, {b['ape_cm']:.2f} / {b['ape_deg']:.3f}, {b['off']} off"
             print(f"| {name} | {method} | {r['localized']}/{r['frames']} | {r['ape_cm']:.2f} / {r['ape_deg']:.3f} | "
-                  f"{r['max_cm']:.2f} / {r['max_deg']:.3f} | {r['off']} | {r['beyond_3sigma']} | {r['fps']:.1f} | {was} | {v} |", flush=True)
+                  f"{r['max_cm']:.2f} / {r['max_deg']:.3f} | {r['off']} | {r['beyond_3sigma']} | "
+                  + ", ".join(f"{k} {n}, {d:.3f}" for k, (n, d) in r["by_source"].items())
+                  + f" | {r['fps']:.1f} | {was} | {v} |", flush=True)
     if args.update:
         merged = {**base, **now}
         tmp = args.baseline.with_suffix(".tmp")
