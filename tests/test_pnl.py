@@ -211,6 +211,41 @@ def test_a_stream_ended_by_ctrl_c_writes_what_it_localized(pnl_site, pnl_map, tm
         assert seq.groundtruth_pose(stamp).distance_to(T)[0] < 0.015
 
 
+def test_the_server_s_p_and_l_backend_replies_with_poses_their_1_sigma_and_what_solved_them(pnl_site, pnl_map):
+    """`cristal serve --backend pnl` as a client sees it over a real Zenoh session on loopback: the walk's frames (real
+    JPEGs) sent one by one get poses near the truth, each with the 1-sigma the gates judged and what solved it."""
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+    from _zenoh import config, endpoint, free_port
+
+    from protocol.messages import Status
+    from services.client.client import LocalizationClient, reply_pose
+    from services.io.sequence import open_sequence
+    from services.server.backend import load_backend
+    from services.server.service import LocalizationServer, ServerConfig
+
+    _, out, _, _ = pnl_site
+    seq = open_sequence(out / "seq")
+    port = free_port()
+    srv = LocalizationServer(load_backend("pnl", None, None, str(pnl_map[0])),
+                             ServerConfig(site="lab", map_id="office", server_id="p0", idle_s=30),
+                             config(listen=[endpoint(port)])).start()
+    cl = LocalizationClient(config(connect=[endpoint(port)]), client_id="hmd", site="lab", map_id="office",
+                            deadline_ms=20000)
+    try:
+        assert cl.wait_for_server(10)
+        replies = [cl.localize(f.read_bytes(), seq.camera, stamp=seq.seconds(s), stamp_text=s)
+                   for f, s in zip(seq.files, seq.stamps)]
+    finally:
+        cl.close()
+        srv.close()
+    posed = [(i, r) for i, r in enumerate(replies) if r is not None and r.status.has_pose]
+    assert replies[0].status is Status.RELOCALIZED and len(posed) >= 6, replies
+    for i, r in posed:
+        dt, dr = seq.groundtruth.poses[i].distance_to(reply_pose(r))
+        assert dt < 0.05 and dr < 1.0, (i, dt, dr)
+        assert 0 < r.sigma_m <= 0.01 and 0 < r.sigma_deg <= 0.1 and r.source in ("features", "direct"), r
+
+
 def test_localize_pnl_without_map_is_a_clear_error(tmp_path):
     r = _cli("localize", tmp_path, tmp_path, "--method", "pnl", "--out", tmp_path / "t.txt")
     assert r.returncode == 2 and "--map" in r.stdout + r.stderr
