@@ -12,9 +12,9 @@ it prints frames localized, APE with no alignment, the worst reported frame's tr
 reported beyond 5 cm or 1 degree of the truth ("off", which must stay 0), the poses whose error exceeds 3 times
 the 1-sigma they were reported with ("> 3σ", from the localizer's TRAJ.frames.csv: how honest its uncertainty is;
 not judged), the rotation RMSE of the poses by what solved them ("by source": direct, features, fused, from the
-same log: where the walk's error sits), and the change against the baseline file. A row is a regression when it loses more than
---tolerance frames, reports a frame off that the baseline did not, or its translation APE grows by more than
-15 % + 0.05 cm; the exit status is then 1. --update writes this run's numbers as the new baseline (commit it with
+same log: where the walk's error sits), and the change against the baseline file. A row is a regression when it
+loses more than --tolerance frames, reports a frame off that the baseline did not, or its translation APE grows by
+more than 15 % + 0.05 cm; the exit status is then 1. --update writes this run's numbers as the new baseline (commit it with
 the change that moved them).
 
 Sites come from `python benchmarks/sites.py` (their recipes: `cristal sim`, `cristal build-db`, `cristal prebuild`).
@@ -68,7 +68,8 @@ def run(site: Path, method: str, out: Path, extra: tuple[str, ...] = ()) -> dict
     a = compute_ape(read_tum(site / "seq_00" / "groundtruth.txt"), read_tum(out), "none", strict=False)
     log = read_frame_log(frame_log_path(out))
     check = uncertainty_check(a, log)  # each pose against its own predicted 1-sigma
-    by = {src or "?": [g["n"], round(g["rot_rmse_deg"], 3)] for src, g in errors_by_source(a, log).items()} if len(a.stamps) else {}
+    by = {src or "?": [g["n"], round(g["rot_rmse_deg"], 3)]  # where the walk's error sits
+          for src, g in errors_by_source(a, log).items()} if len(a.stamps) else {}
     return {"frames": int(s["frames"]), "localized": int(s["localized"]),
             "ape_cm": round(100 * s["ape_none_trans_rmse_m"], 3), "ape_deg": round(s["ape_none_rot_rmse_deg"], 4),
             "off": int(((a.trans_err > OFF_M) | (a.rot_err_deg > OFF_DEG)).sum()),

@@ -35,9 +35,10 @@ examples:
 Writes a TUM trajectory (camera-to-world in the scan frame; frames without a pose are absent) and,
 beside it, TRAJ.frames.csv: every frame's status, inliers, predicted 1-sigma (cm, deg: what a filter
 fusing the poses should weigh them by), what solved the pose (features / direct / fused) and why a
-LOST frame has no pose ('cristal eval' checks the 1-sigmas against ground truth), and TRAJ.png: the poses seen from above over the scan (rm) or the
-map's landmarks (pnl), with the viewing direction, relocalizations and each LOST stretch (and the
-ground truth when the sequence has one): the first thing to look at after a recording. Prints
+LOST frame has no pose ('cristal eval' checks the 1-sigmas against ground truth), and TRAJ.png: the
+poses seen from above over the scan (rm) or the map's landmarks (pnl), with the viewing direction,
+relocalizations and each LOST stretch (and the ground truth when the sequence has one): the first
+thing to look at after a recording. Prints
 frames localized, relocalizations and FPS per stage, the LOST frames by reason (Render & Match: "ambiguous place" in a repetitive site, where a prior would help;
 "pose too uncertain to report"; ...) and, when the sequence has a groundtruth.txt, the APE against
 it. Ends with a one-line JSON summary.
