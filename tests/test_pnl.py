@@ -214,11 +214,11 @@ def test_a_stream_ended_by_ctrl_c_writes_what_it_localized(pnl_site, pnl_map, tm
 def test_the_server_s_p_and_l_backend_replies_with_poses_their_1_sigma_and_what_solved_them(pnl_site, pnl_map):
     """`cristal serve --backend pnl` as a client sees it over a real Zenoh session on loopback: the walk's frames (real
     JPEGs) sent one by one get poses near the truth, each with the 1-sigma the gates judged and what solved it."""
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
     from _zenoh import config, endpoint, free_port
 
     from protocol.messages import Status
     from services.client.client import LocalizationClient, reply_pose
+    from services.io.frame_log import SOURCES
     from services.io.sequence import open_sequence
     from services.server.backend import load_backend
     from services.server.service import LocalizationServer, ServerConfig
@@ -243,7 +243,7 @@ def test_the_server_s_p_and_l_backend_replies_with_poses_their_1_sigma_and_what_
     for i, r in posed:
         dt, dr = seq.groundtruth.poses[i].distance_to(reply_pose(r))
         assert dt < 0.05 and dr < 1.0, (i, dt, dr)
-        assert 0 < r.sigma_m <= 0.01 and 0 < r.sigma_deg <= 0.1 and r.source in ("features", "direct"), r
+        assert 0 < r.sigma_m <= 0.01 and 0 < r.sigma_deg <= 0.1 and r.source in SOURCES, r
 
 
 def test_localize_pnl_without_map_is_a_clear_error(tmp_path):

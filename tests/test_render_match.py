@@ -151,13 +151,13 @@ def test_localize_cli_writes_tum_and_reports_ape(rm_setup, small_site, tmp_path,
     assert s["picture"] == str(tmp_path / "t.png") and red_pixels(tmp_path / "t.png") > 100  # the poses, from above
     traj = read_tum(tmp_path / "t.txt")
     assert set(traj.stamps) <= set(seq.stamps[:6])
-    from services.io.frame_log import read_frame_log
+    from services.io.frame_log import SOURCES, read_frame_log
 
     log = read_frame_log(tmp_path / "t.frames.csv")  # every frame, with the 1-sigma of each pose reported
     assert list(log) == seq.stamps[:6] and {k for k, r in log.items() if r.status != "LOST"} == set(traj.stamps)
     # (the gates widen with a camera this coarse: 200 px across, ~3x the VGA pixel)
     assert all(0 < log[k].sigma_m < 0.05 and log[k].inliers > 0 for k in traj.stamps), log
-    assert all(log[k].source in ("features", "direct", "fused") for k in traj.stamps), log  # what solved each
+    assert all(log[k].source in SOURCES for k in traj.stamps), log  # what solved each
     assert main(["localize", str(out / "scan.ply"), str(out / "seq_00"), "--db", str(tmp_path / "missing.npz"),
                  "--out", str(tmp_path / "x.txt")]) == 2
     assert main(["localize", str(out / "scan.ply"), str(out / "seq_00"), "--db", str(db_path), "--out",

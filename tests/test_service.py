@@ -17,6 +17,7 @@ from _zenoh import config, endpoint, free_port, wait_until
 from protocol import PROTOCOL_VERSION, keys
 from protocol.codec import decode, encode
 from protocol.messages import ErrorCode, FrameRequest, ImageEncoding, Intrinsics, PoseMsg, PoseReply, Status
+from services.io.frame_log import SOURCES
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -87,7 +88,7 @@ def test_request_reply_and_publication(service, small_site):
             dt, dr = seq.groundtruth.poses[i].distance_to(__import__("services.client", fromlist=["x"]).reply_pose(r))
             assert dt < 0.15 and dr < 2.0, (i, dt, dr)  # service test: convention errors would be metres
             assert r.server == "w0" and r.map == "office" and r.inliers >= 40 and r.stamp_text == seq.stamps[i]
-            assert r.source in ("features", "direct", "fused"), r  # what solved the pose travels with it
+            assert r.source in SOURCES, r  # what solved the pose travels with it
             assert r.timings["total_ms"] > 0 and ("features_ms" in r.timings or "direct_ms" in r.timings) and "queue_ms" in r.timings
         assert wait_until(lambda: len(got) == 4, 5), got
         assert [g.seq for g in got] == [1, 2, 3, 4] and got[0].client == "dev-1"
