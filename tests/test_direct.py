@@ -128,3 +128,29 @@ def test_the_basin_probe_leaves_a_pose_with_a_real_minimum_alone():
     err, sigma = _align(lintel=False, probe=0.0, off_m=0.02)
     assert err < 0.002 and sigma > err, (err, sigma)  # the far wall alone: back from 2 cm, at an honest sigma
     assert _align(lintel=False, probe=10.0, off_m=0.02) == (err, sigma)
+
+
+def test_alignments_that_miss_the_pose_grossly_are_named():
+    """A poster moved 3 px on the far wall since the keyframe was cut (a site that changed after its scan): the patches
+    on it align where the poster now is, 3 px from where the pose puts them, and the pose says which they are, so a
+    tracker can stop aligning them; those on the rest of the wall are not named."""
+    lp, P = _doorway(lintel=False)
+    truth = Pose.from_rotvec_t([0.0, 0.0, 0.0], [0.05, 0.0, 0.10])
+    live = _render(truth, lintel=False)
+    x0, x1, y0, y1 = 360, 560, 60, 200  # the poster, in the live frame
+    moved = live.copy()
+    moved[y0:y1, x0 + 3:x1 + 3] = live[y0:y1, x0:x1]
+    start = truth.inverse()
+    d = align_and_solve(lp, np.arange(len(P)), P, start.R, start.t, K, moved, DirectConfig())
+    Xc = P @ start.R.T + start.t
+    uv = Xc[:, :2] / Xc[:, 2:] * F + K[:2, 2]
+    on = (uv[:, 0] > x0 + 10) & (uv[:, 0] < x1 - 10) & (uv[:, 1] > y0 + 10) & (uv[:, 1] < y1 - 10)
+    named = np.zeros(len(P), bool)
+    named[d.missed] = True
+    assert on.sum() >= 8 and named[on].mean() > 0.7, (on.sum(), named[on].mean())
+    near = (uv[:, 0] > x0 - 12) & (uv[:, 0] < x1 + 15) & (uv[:, 1] > y0 - 12) & (uv[:, 1] < y1 + 12)
+    assert not named[~near].any(), np.flatnonzero(named & ~near)
+    assert np.linalg.norm(d.T_wc.t - truth.t) < 0.005
+    # the unchanged wall: nothing named
+    d0 = align_and_solve(lp, np.arange(len(P)), P, start.R, start.t, K, live, DirectConfig())
+    assert len(d0.missed) == 0
