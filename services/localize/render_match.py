@@ -255,6 +255,10 @@ class RMConfig:
     #                              sharp, model it (a blurred one's did not: stop 44), and XFeat's poses err 2-3x their
     #                              1-sigma where direct ones err ~1x. Else the two disagreeing hold the frame back
     #                              (_polish). Cold: seeds 8 / 90 23 -> 25, 22 -> 23 of 40; walks +5 frames (stop 68)
+    direct_drop_missed: bool = True  # a keyframe patch whose alignment missed a sharp frame's good direct pose grossly
+    #                                  (direct._gross) is not aligned again on that keyframe: what it shows moved or went
+    #                                  since the scan (RenderMatchTracker._direct; changed seed 8's frame 5.2 cm off
+    #                                  gone, three changed walks +12 frames, eight unchanged ones -2: stop 71)
     direct_edge_retry: bool = True  # and where the corners were enough to try but give no pose, the frame is aligned
     #                                 again with the edge-like patches too: a sparse scan's plain walls left 62-111
     #                                 corners that did not align, and XFeat's poses there (0.24 deg RMSE, ~2-3x their
@@ -297,6 +301,8 @@ class Keyframe:
     direct: dict = field(default_factory=dict)  # edges? -> (LandmarkPatches, world points, render pixels, edges taken):
     #                                             corner patches for direct tracking (edges: the edge-like ones too)
     direct_blurred: dict = field(default_factory=dict)  # edges? -> the same patches cut from the blurred render
+    direct_missed: dict = field(default_factory=dict)  # edges? -> (N,) bool: patches a sharp frame's good pose found
+    #                                                    aligned grossly off it, no longer aligned (direct_drop_missed)
     scene_points: np.ndarray | None = None  # world points of the render's measured depth (RenderMatchTracker._scene_depth)
     depth_m: float | None = None  # median measured depth of the render (the scan's error in the reported 1-sigma) ...
     scan_sigma_m: float | None = None  # ... and the stations' disagreement where it looks (scan_error.local_scan_sigma)
@@ -833,7 +839,16 @@ class RenderMatchTracker:
 
     def _direct(self, kf: Keyframe, fr: _Frame, T_pred: Pose) -> PnpResult | None:
         """Track without features on the frame: align it to the keyframe render's corner patches warped into the
-        predicted view (:mod:`services.localize.direct`) and solve. None when it does not converge."""
+        predicted view (:mod:`services.localize.direct`) and solve. None when it does not converge.
+
+        Patches whose alignments miss a sharp frame's good pose grossly are not aligned again on this keyframe
+        (``direct_drop_missed``): in a site changed since its scan a render shows a desk that is gone, and the patches on
+        its edges align onto the carpet beneath, each a few px off. Once most agree the pose holds, but frame after
+        frame aligned to the same keyframe those few pull the same way: office seed 8 changed 30 %, frames 80-82 were
+        reported 1.1, 2.8 and 5.2 cm off at 0.2-0.6 cm 1-sigma, each started from the last. Dropped as they miss,
+        the same frames are 0.1 cm off, and eleven walks kept their frames (2674 -> 2684) with fewer poses beyond 3
+        sigma (45 -> 33). Unchanged sites mark 0.1-0.4 patches a keyframe, that changed one 5.7 (benchmarks/RESULTS.md,
+        stop 71)."""
         t0 = time.perf_counter()
         exposure = self._exposure(fr)
         blur = self._blur_px(fr, exposure)
@@ -854,7 +869,9 @@ class RenderMatchTracker:
             z = np.maximum(Xc[:, 2], 1e-6)
             u, v = cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy
             m = 12 * cam.width / 640
-            vis = np.flatnonzero((Xc[:, 2] > 0.1) & (u >= m) & (u < cam.width - 1 - m) & (v >= m) & (v < cam.height - 1 - m))
+            missed = kf.direct_missed.setdefault(edges, np.zeros(len(P), bool))
+            vis = np.flatnonzero((Xc[:, 2] > 0.1) & (u >= m) & (u < cam.width - 1 - m) & (v >= m) & (v < cam.height - 1 - m)
+                                & ~missed)
             if len(vis) >= need:
                 d = align_and_solve(lp, vis, P[vis], T_cw.R, T_cw.t, cam.K, self._undistorted_gray(fr), dc)
             # corners that do not align (too few converge: a sparse scan's plain walls) are tried again with the
@@ -869,8 +886,11 @@ class RenderMatchTracker:
         # sqrt(blur / blur_sigma_px), not x blur / blur_sigma_px (against ground truth, linear: errors 0.2-0.4 sigma
         # at 16-24 px, none: 2 sigma)
         cov = self._blur_scaled(d.cov_right_wc(), blur * self._base_scale(cam), power=self.cfg.direct_blur_power)
-        return PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * dc.sigma_px, 0, cov, 1.0,
-                         float(np.degrees(1.0 / max(cam.fx, cam.fy))), source="direct")
+        r = PnpResult(d.T_wc, np.ones(d.inliers, bool), d.rmse * dc.sigma_px, 0, cov, 1.0,
+                      float(np.degrees(1.0 / max(cam.fx, cam.fy))), source="direct")
+        if self.cfg.direct_drop_missed and blur < self.cfg.blur_min_px and self._good(r):
+            missed[d.missed] = True  # (a blurred frame's alignments miss more, and say less about the scene)
+        return r
 
     def _unrolled_again(self, image: np.ndarray, camera: Camera, fr: _Frame, r: PnpResult, readout: float) -> PnpResult:
         """A rolling-shutter frame unrolled with the motion model's last motion, tracked to ``r``: when the motion from
