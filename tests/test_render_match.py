@@ -1847,9 +1847,9 @@ def test_corners_that_do_not_align_are_tried_again_with_edge_like_patches(rm_set
 def test_a_keyframe_patch_whose_alignment_misses_a_sharp_frame_s_pose_is_not_aligned_again(rm_setup, site_480):
     """A site that changed since its scan: what the left of the frame shows, a fifth of the keyframe's patches, has
     moved 3 px. Those whose windows converge align where it is now, grossly off the pose the rest agree on; the keyframe
-    remembers them and aligns them no more (office seed 8 changed 30 %: such patches pulled three frames in a row to 5.2 cm off).
-    The unchanged frame then aligns without them; with ``direct_drop_missed`` off nothing is remembered. Real render,
-    against ground truth."""
+    remembers them and aligns them no more (office seed 8 changed 30 %: such patches pulled three frames in a row to
+    5.2 cm off). The unchanged frame then aligns without them; with ``direct_drop_missed`` off nothing is remembered.
+    Real render, against ground truth."""
     from services.localize.render_match import _Frame
 
     renderer, ext, _, _, _ = rm_setup

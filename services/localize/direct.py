@@ -54,7 +54,7 @@ class DirectPose:
     rmse: float  # whitened: standard deviations of sigma_px
     cov: np.ndarray  # (6, 6) of dx = (omega, v), left perturbation of T_cw
     converged: bool
-    missed: np.ndarray | None = None  # patch indices (of those aligned) that converged but miss the pose grossly (_gross)
+    missed: np.ndarray | None = None  # patch indices (of those aligned) that converged but miss the pose grossly
 
     @property
     def T_wc(self) -> Pose:
@@ -250,7 +250,8 @@ def align_and_solve(lp: LandmarkPatches, pidx: np.ndarray, P: np.ndarray, R: np.
         step = (float(np.linalg.norm(R2.T @ t2 - R.T @ t)), math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2)))))
         R, t = R2, t2
         cov = pose_covariance(P[ok][inl], info[ok][inl] * w, K, R, t, rmse, cfg.rmse_floor)
-        out = DirectPose(R, t, int(inl.sum()), rmse, cov, False, pidx[ok][_gross(P[ok], q[ok], info[ok] * w, K, R, t)])
+        missed = pidx[ok][_gross(P[ok], q[ok], info[ok] * w, K, R, t)]
+        out = DirectPose(R, t, int(inl.sum()), rmse, cov, False, missed)
         sigma_m, sigma_deg = cov_sigmas(cov)
         if step[0] <= 0.5 * sigma_m and step[1] <= 0.5 * sigma_deg:
             out.converged = True
