@@ -1872,8 +1872,8 @@ def test_a_keyframe_patch_whose_alignment_misses_a_sharp_frame_s_pose_is_not_ali
         assert missed[in_band].sum() >= 2 and missed[x > band + 12].mean() < 0.05, (
             missed[in_band].sum(), in_band.sum(), missed[x > band + 12].mean())
         again = tr._direct(kf, _Frame(f.image, cam, {}, None, 0.0, None), T)
-        assert again.n_inliers <= (~missed).sum() and T.distance_to(again.T_wc)[0] < 0.01
-        # where nothing moved, next to nothing misses
-        kf = tr._keyframe(T, _Frame(f.image, cam, {}, None, 0.0, None))
-        assert tr._good(tr._direct(kf, _Frame(f.image, cam, {}, None, 0.0, None), T))
-        assert kf.direct_missed[False].mean() < 0.03, kf.direct_missed[False].sum()
+        # where nothing moved, next to nothing misses; the same render, remembering none, aligns the patches it dropped
+        fresh_kf = tr._keyframe(T, _Frame(f.image, cam, {}, None, 0.0, None))
+        fresh = tr._direct(fresh_kf, _Frame(f.image, cam, {}, None, 0.0, None), T)
+        assert tr._good(fresh) and fresh_kf.direct_missed[False].mean() < 0.03, fresh_kf.direct_missed[False].sum()
+        assert again.n_inliers < fresh.n_inliers and T.distance_to(again.T_wc)[0] < 0.01, (again.n_inliers, fresh.n_inliers)

@@ -250,19 +250,22 @@ def align_and_solve(lp: LandmarkPatches, pidx: np.ndarray, P: np.ndarray, R: np.
         step = (float(np.linalg.norm(R2.T @ t2 - R.T @ t)), math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2)))))
         R, t = R2, t2
         cov = pose_covariance(P[ok][inl], info[ok][inl] * w, K, R, t, rmse, cfg.rmse_floor)
-        missed = pidx[ok][_gross(P[ok], q[ok], info[ok] * w, K, R, t)]
-        out = DirectPose(R, t, int(inl.sum()), rmse, cov, False, missed)
+        out = DirectPose(R, t, int(inl.sum()), rmse, cov, False)
+        fit = (ok, q, info)  # the alignments this pose was solved from
         sigma_m, sigma_deg = cov_sigmas(cov)
         if step[0] <= 0.5 * sigma_m and step[1] <= 0.5 * sigma_deg:
             out.converged = True
-            return _probed(out, lp, pidx, P, K, gray, cfg, blur)
-    if out is not None:  # not converged: at least as uncertain as the last step (isotropically, in both blocks)
+            break
+    if out is None:
+        return None
+    if not out.converged:  # at least as uncertain as the last step (isotropically, in both blocks)
         c = out.cov.copy()
         c[3:, 3:] += np.eye(3) * step[0] ** 2
         c[:3, :3] += np.eye(3) * math.radians(step[1]) ** 2
         out.cov = c
-        out = _probed(out, lp, pidx, P, K, gray, cfg, blur)
-    return out
+    ok, q, info = fit
+    out.missed = pidx[ok][_gross(P[ok], q[ok], info[ok] * w, K, out.R, out.t)]
+    return _probed(out, lp, pidx, P, K, gray, cfg, blur)
 
 
 def _gross(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
