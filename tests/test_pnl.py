@@ -182,7 +182,10 @@ def test_ctrl_c_keeps_the_frames_localized_so_far(pnl_site, pnl_map, tmp_path, c
 
 def test_a_stream_ended_by_ctrl_c_writes_what_it_localized(pnl_site, pnl_map, tmp_path):
     """A live camera's stream ends with Ctrl-C: the frames localized so far (here by the on-device P&L fallback, no
-    server) are written with their sources, and the stats say it was interrupted."""
+    server) are written with their sources, and the stats say it was interrupted. Its length is a bound (10**9
+    frames), and nothing is allocated per frame of it up front."""
+    import tracemalloc
+
     from services.client.fallback import load_local
     from services.client.stream import sources_path, stream_sequence
     from services.io.sequence import open_sequence
@@ -203,7 +206,14 @@ def test_a_stream_ended_by_ctrl_c_writes_what_it_localized(pnl_site, pnl_map, tm
             raise KeyboardInterrupt
 
     traj_path = tmp_path / "live.txt"
-    traj, st = stream_sequence(LiveUntilCtrlC(), None, load_local(pnl_map[0]), traj_path)
+    local = load_local(pnl_map[0])
+    tracemalloc.start()
+    try:
+        traj, st = stream_sequence(LiveUntilCtrlC(), None, local, traj_path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 300e6, f"a live stream of unknown length took {peak / 1e6:.0f} MB"  # (a list per frame bound: 8 GB)
     assert st.interrupted and st.summary()["interrupted"] and st.frames == 5
     got = read_tum(traj_path)
     assert len(got) == len(traj) >= 4 and len(sources_path(traj_path).read_text().splitlines()) == 6

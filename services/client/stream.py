@@ -121,14 +121,16 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
     n = len(seq) if frames is None else min(len(seq), frames)
     t_start = time.perf_counter()
     period = 1.0 / fps if fps and fps > 0 else 0.0
-    motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else [None] * n
+    # a recording's motions up front; none for a live camera (its length is a bound, 10**9 frames: a list of that many
+    # Nones took 8 GB and 17 s before the first frame)
+    motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else []
     unsent: list = []  # motions of frames not sent since the last one that was (unreadable): the next carries them
     try:
         for i, frame in enumerate(progress(seq.frames(tolerant=True), desc="streaming", total=n, unit="frame")):
             if i >= n:
                 break
             if frame.image is None:  # a missing or broken file (logged): no pose for it, the stream goes on
-                unsent.append(motions[i])
+                unsent.append(motions[i] if i < len(motions) else None)
                 st.frames += 1
                 st.none += 1
                 st.rows.append((frame.stamp, "-", "unreadable", "-", float("nan")))
@@ -143,7 +145,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
             rep = None
             stamp_f = _seconds(seq, frame.stamp)
             stamp_f = float(i) if stamp_f is None else stamp_f
-            motion, unsent = _since_last_sent(unsent, motions[i]), []
+            motion, unsent = _since_last_sent(unsent, motions[i] if i < len(motions) else None), []
             if client is not None:
                 data, enc = _frame_bytes(seq, i, frame.image)
                 t0 = time.perf_counter()
