@@ -77,8 +77,15 @@ def floating_points(scan: Scan, spacings: float = 5.0, min_neighbours: int = 3, 
         else:
             radius = np.full(len(idx), min(tile_m, fixed))
         near = np.concatenate([tiles.get(k + dx * ny + dy, np.zeros(0, np.int64)) for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
-        counts = cKDTree(xyz[near]).query_ball_point(pts, radius, return_length=True, workers=workers)
-        floating[idx] = counts <= min_neighbours  # (the count includes the point itself)
+        # only the points around it within its largest radius (not all nine tiles: each point was in nine trees)
+        r_max = float(radius.max())
+        lo_t, hi_t = pts.min(axis=0) - r_max, pts.max(axis=0) + r_max
+        near = near[np.all((xyz[near] >= lo_t) & (xyz[near] <= hi_t), axis=1)]
+        # floating = fewer than min_neighbours others within the radius = the min_neighbours-th nearest other is beyond
+        # it (k nearest, not every point in the ball counted: a surface point has ~80 there)
+        k_th = min(min_neighbours + 1, len(near))  # (the point itself is the nearest)
+        d = cKDTree(xyz[near]).query(pts, k=k_th, workers=workers)[0].reshape(len(pts), -1)
+        floating[idx] = d[:, -1] > radius if k_th == min_neighbours + 1 else True
     if floating.mean() > 0.02:
         log.warning("floating points: %.1f %% of the scan has fewer than %d neighbours within %g ray spacings: more than "
                     "mixed pixels make; parts of it may be scanned only from far stations (check before dropping)",
