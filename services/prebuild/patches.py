@@ -50,6 +50,20 @@ class LandmarkPatches:
     noise: np.ndarray | None = None  # (N,) float32 >= 1: how much noisier than a patch cut from measured surroundings
     #                                  each patch aligns (:func:`hole_noise`); None (a file from before it): all 1
 
+    def __post_init__(self) -> None:
+        # one dtype and layout per field, whoever made them (the map's file, a keyframe's render, the builder): the
+        # compiled kernels take each combination as a signature of its own, ~2 s to compile on first use (nine there were)
+        self.lm_ids = np.ascontiguousarray(self.lm_ids, np.int64)
+        self.patches = np.ascontiguousarray(self.patches, np.uint8)
+        self.normals = np.ascontiguousarray(self.normals, np.float64)
+        self.src = np.ascontiguousarray(self.src, np.int64)
+        self.src_T_cw = np.ascontiguousarray(self.src_T_cw, np.float64)
+        self.K = np.ascontiguousarray(self.K, np.float64)
+        if self.pos is not None:
+            self.pos = np.ascontiguousarray(self.pos, np.float64)
+        if self.noise is not None:
+            self.noise = np.ascontiguousarray(self.noise, np.float32)
+
     @property
     def size(self) -> int:
         return int(self.patches.shape[1])
@@ -174,8 +188,8 @@ def _homographies(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: n
     if kern is not None:
         H = np.empty((len(idx), 3, 3))
         kern.homographies(lp.K, lp.src_T_cw, lp.src, lp.normals, np.ascontiguousarray(idx, np.int64),
-                          np.ascontiguousarray(P_w, np.float64), np.ascontiguousarray(R_cw, np.float64),
-                          np.ascontiguousarray(t_cw, np.float64), np.ascontiguousarray(K, np.float64), H)
+                          np.ascontiguousarray(P_w, np.float64), np.array(R_cw, np.float64),  # (writable: a read-only
+                          np.array(t_cw, np.float64), np.ascontiguousarray(K, np.float64), H)  # pose is a signature too)
         return H
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     Xc = P_w @ R_cw.T + t_cw
