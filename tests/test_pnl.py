@@ -221,6 +221,49 @@ def test_a_stream_ended_by_ctrl_c_writes_what_it_localized(pnl_site, pnl_map, tm
         assert seq.groundtruth_pose(stamp).distance_to(T)[0] < 0.015
 
 
+def test_a_stream_keeps_every_frame_on_disk_as_it_goes_and_only_the_last_ones_in_memory(pnl_site, pnl_map, tmp_path):
+    """A robot streams a live camera for days: each frame's pose and source are on disk (``.part``, flushed) before the
+    next frame is read, so a kill loses nothing; a source that fails mid-stream (a camera unplugged) still leaves the
+    trajectory and sources of the frames done in place; and memory holds only the last frames."""
+    from services.client.fallback import load_local
+    from services.client.stream import sources_path, stream_sequence
+    from services.io.sequence import open_sequence
+    from services.io.trajectory import read_tum
+
+    _, out, _, _ = pnl_site
+    seq = open_sequence(out / "seq")
+
+    class Unplugged:  # the sequence's frames, then the camera is gone
+        camera, stamps, groundtruth, files = seq.camera, seq.stamps, seq.groundtruth, None
+
+        def __len__(self):
+            return 10 ** 9
+
+        def frames(self, tolerant=False):
+            for i in range(6):
+                yield seq.read(i)
+            raise RuntimeError("camera unplugged")
+
+    path = tmp_path / "live.txt"
+    part = sources_path(path).with_name(sources_path(path).name + ".part")
+    on_disk = []
+    with pytest.raises(RuntimeError, match="unplugged"):
+        stream_sequence(Unplugged(), None, load_local(pnl_map[0]), path,
+                        on_frame=lambda i, *_: on_disk.append(len(part.read_text().splitlines()) - 1))
+    assert on_disk == [1, 2, 3, 4, 5, 6]  # each frame written before the next is read
+    rows = sources_path(path).read_text().splitlines()[1:]
+    got = read_tum(path)
+    assert len(rows) == 6 and len(got) == sum(r.split()[1] == "local" for r in rows) >= 5
+    assert not part.exists() and not path.with_name(path.name + ".part").exists()
+    for stamp, T in zip(got.stamps, got.poses):
+        assert seq.groundtruth_pose(stamp).distance_to(T)[0] < 0.015
+
+    traj, st = stream_sequence(seq, None, load_local(pnl_map[0]), path, memory_frames=2)
+    assert st.frames == 8 and st.server + st.local >= 7 and len(read_tum(path)) == st.server + st.local
+    assert len(st.rows) <= 4 and len(traj) <= 4 and st.forgotten == 8 - len(st.rows)
+    assert st.rows[-1][0] == seq.stamps[7] and st.summary()["frames_in_memory"] == len(st.rows)
+
+
 def test_the_server_s_p_and_l_backend_replies_with_poses_their_1_sigma_and_what_solved_them(pnl_site, pnl_map):
     """`cristal serve --backend pnl` as a client sees it over a real Zenoh session on loopback: the walk's frames (real
     JPEGs) sent one by one get poses near the truth, each with the 1-sigma the gates judged and what solved it."""

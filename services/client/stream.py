@@ -6,12 +6,16 @@ and seed the local localizer with it. No live server, no reply before the deadli
 The next frame tries the server again, so the client hands back as soon as a server answers.
 
 Outputs: the TUM trajectory (frames with a pose from either source) and a side file
-``<traj>.sources.txt``: ``stamp source status server rtt_ms`` per frame (``-`` where none).
+``<traj>.sources.txt``: ``stamp source status server rtt_ms`` per frame (``-`` where none). Both are written as the
+frames come, to ``<file>.part`` beside them (flushed each frame: a crash, a power cut or a kill loses nothing
+localized), and renamed into place when the stream ends, however it ends. A live camera runs for days: memory holds
+only the last ``memory_frames`` frames (the statistics and the picture are theirs), the files hold every frame.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +26,7 @@ from protocol.messages import reason_kind
 from services.client.client import LocalizationClient, reply_pose
 from services.client.fallback import LocalFallback
 from services.geometry.se3 import Pose
-from services.io.trajectory import Trajectory, relative_motions, write_tum
+from services.io.trajectory import Trajectory, format_tum_line, relative_motions
 
 __all__ = ["StreamStats", "stream_sequence", "sources_path"]
 
@@ -59,6 +63,7 @@ class StreamStats:
     wall_s: float = 0.0
     rows: list[tuple] = field(default_factory=list)
     interrupted: bool = False  # ended by Ctrl-C (a live camera's usual end)
+    forgotten: int = 0  # the oldest frames dropped from memory (``rows``, round trips) to bound it; the files keep them
     picture: Path | None = None  # TRAJ.png, the poses from above, once written
 
     def summary(self) -> dict:
@@ -74,7 +79,8 @@ class StreamStats:
                 "switches": self.switches, "fps": round(self.frames / self.wall_s, 2) if self.wall_s else 0.0,
                 "rtt_p50_ms": pct(rtt, 50), "rtt_p99_ms": pct(rtt, 99),
                 "overhead_p50_ms": pct(rtt - srv, 50) if len(rtt) == len(srv) else None,
-                **({"interrupted": True} if self.interrupted else {})}
+                **({"interrupted": True} if self.interrupted else {}),
+                **({"frames_in_memory": self.frames - self.forgotten} if self.forgotten else {})}
 
 
 def _frame_bytes(seq, i: int, image: np.ndarray):
@@ -103,18 +109,79 @@ def _seconds(seq, stamp: str) -> float | None:
         return None
 
 
+SOURCES_HEADER = "# stamp source status server rtt_ms"
+
+
+class _Journal:
+    """The trajectory and its sources written as the frames come: each line appended to ``<file>.part`` and flushed (a
+    crash or a kill loses nothing localized; the page cache survives the process), renamed into place, fsynced, by
+    :meth:`close` however the stream ends."""
+
+    def __init__(self, out: str | Path):
+        self.paths = [Path(out), sources_path(out)]
+        self.paths[0].parent.mkdir(parents=True, exist_ok=True)
+        self.files = [open(self._part(p), "w") for p in self.paths]
+        self.files[1].write(SOURCES_HEADER + "\n")
+
+    @staticmethod
+    def _part(p: Path) -> Path:
+        return p.with_name(p.name + ".part")
+
+    def add(self, row: tuple, T: Pose | None) -> None:
+        stamp, src, stt, srv, r = row
+        if T is not None:
+            self.files[0].write(format_tum_line(stamp, T) + "\n")
+            self.files[0].flush()
+        self.files[1].write(f"{stamp} {src} {stt} {srv} {r:.2f}\n")
+        self.files[1].flush()
+
+    def close(self) -> None:
+        for f, p in zip(self.files, self.paths):
+            f.flush()
+            os.fsync(f.fileno())
+            f.close()
+            os.replace(self._part(p), p)
+        try:
+            dfd = os.open(self.paths[0].parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except OSError:
+            pass
+
+
+def _forget_oldest(traj: Trajectory, st: StreamStats, keep: int) -> None:
+    """Memory bounded for a stream of days: past 2 x ``keep`` frames in memory, the oldest are dropped down to ``keep``
+    (amortised: a list's front is cut once in ``keep`` frames); the journal has written them."""
+    if len(st.rows) <= 2 * keep:
+        return
+    cut = len(st.rows) - keep
+    posed = sum(1 for r in st.rows[:cut] if r[1] != "-")  # (frames in order; a posed frame's source is named)
+    del st.rows[:cut], traj.stamps[:posed], traj.poses[:posed]
+    for lst in (st.rtt_ms, st.server_ms):
+        del lst[:max(0, len(lst) - keep)]
+    st.forgotten += cut
+
+
 def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallback | None, out: str | Path | None = None,
                     frames: int | None = None, fps: float = 0.0, deadline_ms: float | None = None,
                     on_frame=None, odometry: Trajectory | None = None,
-                    readout_s: float | None = None, near=None) -> tuple[Trajectory, StreamStats]:
+                    readout_s: float | None = None, near=None,
+                    memory_frames: int = 100_000) -> tuple[Trajectory, StreamStats]:
     """Stream ``seq`` (a services.io.sequence.Sequence, or anything with its ``camera``, ``stamps``, ``len`` and
     ``frames(tolerant=True)``) and write the trajectory + sources; a frame whose file is missing or broken gets no pose
     and the stream goes on. ``fps`` > 0 paces frames at that rate. ``odometry``: the
     device's own trajectory (any frame of its own): each frame is sent with its motion since the previous one.
     ``readout_s``: the camera's rolling-shutter readout (server and local fallback undo it; None: global shutter).
     ``near``: ((x, y, z), radius m) where the stream starts, roughly: sent with every frame until one has a pose (the
-    server may be reached only later), and given to the local fallback."""
+    server may be reached only later), and given to the local fallback. ``out``: written as the frames come (the module);
+    ``memory_frames``: at most about twice this many frames are kept in memory (an hour at 30 FPS: 100 000), the
+    returned trajectory and the statistics are those of the last ones."""
     from services.log import progress
+
+    if memory_frames < 1:
+        raise ValueError(f"memory_frames must be at least 1 (got {memory_frames})")
 
     traj = Trajectory()
     st = StreamStats()
@@ -125,6 +192,16 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
     # Nones took 8 GB and 17 s before the first frame)
     motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else []
     unsent: list = []  # motions of frames not sent since the last one that was (unreadable): the next carries them
+    journal = _Journal(out) if out is not None else None
+
+    def record(row: tuple, T: Pose | None) -> None:
+        st.rows.append(row)
+        if T is not None:
+            traj.append(row[0], T)
+        if journal is not None:
+            journal.add(row, T)
+        _forget_oldest(traj, st, memory_frames)
+
     try:
         for i, frame in enumerate(progress(seq.frames(tolerant=True), desc="streaming", total=n, unit="frame")):
             if i >= n:
@@ -133,7 +210,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
                 unsent.append(motions[i] if i < len(motions) else None)
                 st.frames += 1
                 st.none += 1
-                st.rows.append((frame.stamp, "-", "unreadable", "-", float("nan")))
+                record((frame.stamp, "-", "unreadable", "-", float("nan")), None)
                 continue
             if period:
                 wait = t_start + i * period - time.perf_counter()
@@ -184,38 +261,34 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
                     T, source = lr.T_wc, "local"
                     st.local += 1
                     status = f"{status}/{lr.status}"
-            if T is None:
-                st.none += 1
-            else:
-                traj.append(frame.stamp, T)
+            st.none += T is None
             st.frames += 1
-            st.rows.append((frame.stamp, source, status, server, rtt))
+            record((frame.stamp, source, status, server, rtt), T)
             if on_frame is not None:
                 on_frame(i, frame, T, source, rep)
     except KeyboardInterrupt:  # Ctrl-C ends a live camera's stream: what was localized is still written
         st.interrupted = True
         log.warning("interrupted after %d frames: writing their poses", st.frames)
+    finally:  # however the stream ends (a camera unplugged, the server's library raising), the frames done are kept
+        if journal is not None:
+            journal.close()
     st.wall_s = time.perf_counter() - t_start
     st.switches = client.switches if client is not None else 0
     if out is not None:
-        write_tum(out, traj)
-        from services.io.atomic import atomic_write_text
-
-        lines = ["# stamp source status server rtt_ms"] + [f"{s} {src} {stt} {srv} {r:.2f}" for s, src, stt, srv, r in st.rows]
-        atomic_write_text(sources_path(out), "\n".join(lines) + "\n")
-        st.picture = _picture(traj, st.rows, seq, out, fallback)
+        st.picture = _picture(traj, st, seq, out, fallback)
     return traj, st
 
 
-def _picture(traj: Trajectory, rows: list, seq, out, fallback):
+def _picture(traj: Trajectory, st: StreamStats, seq, out, fallback):
     """TRAJ.png: the stream's poses from above (services.eval.plots.plot_localization_topdown), the local
     fallback's marked, over its map's landmarks when it has one; None (logged) when it cannot be drawn (no matplotlib
     on a headset): the trajectory and sources are written either way."""
     from services.eval.plots import drawn, picture_path, plot_localization_topdown
     from services.io.frame_log import FrameRecord
 
-    records = [FrameRecord(s, {"server": "TRACKING", "local": "LOCAL"}.get(src, "LOST")) for s, src, *_ in rows]
+    records = [FrameRecord(s, {"server": "TRACKING", "local": "LOCAL"}.get(src, "LOST")) for s, src, *_ in st.rows]
+    last = f" (the last {len(st.rows)} of {st.frames})" if st.forgotten else ""
     idx = getattr(getattr(fallback, "loc", None), "idx", None)
     return drawn("the stream", plot_localization_topdown, traj, records, picture_path(out),
                  landmarks=getattr(idx, "pos", None), gt=getattr(seq, "groundtruth", None),
-                 title=f"streamed (top view): {len(traj)}/{len(rows)} frames with a pose")
+                 title=f"streamed (top view): {len(traj)}/{len(st.rows)} frames with a pose{last}")
