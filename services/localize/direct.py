@@ -168,7 +168,8 @@ def solve_motion_only(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.nda
             J, e = np.empty((2 * n, 6)), np.empty(2 * n)
         for _ in range(iters):
             if kern is not None:
-                kern.normal_equations(*m, np.array(R, np.float64), np.array(t, np.float64), fx, fy, cx, cy, huber, H, g)
+                Rc, tc = np.array(R, np.float64, order="C"), np.array(t, np.float64)  # (writable, C: one signature)
+                kern.normal_equations(*m, Rc, tc, fx, fy, cx, cy, huber, H, g)
             else:
                 e[:n], e[n:], Xc = whitened(R, t, *m)
                 r = np.sqrt(e[:n] * e[:n] + e[n:] * e[n:])
