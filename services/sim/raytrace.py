@@ -281,7 +281,9 @@ def trace(bvh: BVH, origins: np.ndarray, dirs: np.ndarray, tmin: float = 1e-6, t
     origins = np.asarray(origins, dtype=np.float64)
     if origins.ndim == 1:
         origins = np.broadcast_to(origins, dirs.shape)
-    origins = np.ascontiguousarray(origins).reshape(-1, 3)
+    # C-ordered and writable whatever came in (one ray's broadcast origin is a read-only view: the kernel compiled a
+    # signature of its own for it)
+    origins = np.require(origins.reshape(-1, 3), np.float64, ["C", "W"])
     n = dirs.shape[0]
     t = np.empty(n)
     tri = np.empty(n, np.int32)

@@ -143,7 +143,7 @@ class SceneRenderer:
              tmax: float = 1e9) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Radiance (N,3) linear, distance along ``dirs`` in units of |dir| (inf on miss), and triangle id."""
         dirs = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
-        origins = np.ascontiguousarray(np.broadcast_to(np.asarray(origins, np.float64), dirs.shape))
+        origins = np.require(np.broadcast_to(np.asarray(origins, np.float64), dirs.shape), None, ["C", "W"])
         t, tri, u, v = trace(self.bvh, origins, dirs, tmax=tmax)
         sp = np.ascontiguousarray(np.broadcast_to(np.asarray(spread, np.float64), (len(dirs),)))
         out = np.empty((len(dirs), 3))
