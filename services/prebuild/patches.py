@@ -187,9 +187,10 @@ def _homographies(lp: LandmarkPatches, idx: np.ndarray, P_w: np.ndarray, R_cw: n
     kern = _kernels()
     if kern is not None:
         H = np.empty((len(idx), 3, 3))
-        R, t = np.array(R_cw, np.float64, order="C"), np.array(t_cw, np.float64)  # (writable, C: a read-only or
-        kern.homographies(lp.K, lp.src_T_cw, lp.src, lp.normals, np.ascontiguousarray(idx, np.int64),  # transposed pose
-                          np.ascontiguousarray(P_w, np.float64), R, t, np.ascontiguousarray(K, np.float64), H)  # compiles anew)
+        # the pose C-ordered and writable: a read-only or transposed one compiled the kernel anew
+        R, t = np.array(R_cw, np.float64, order="C"), np.array(t_cw, np.float64)
+        kern.homographies(lp.K, lp.src_T_cw, lp.src, lp.normals, np.ascontiguousarray(idx, np.int64),
+                          np.ascontiguousarray(P_w, np.float64), R, t, np.ascontiguousarray(K, np.float64), H)
         return H
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     Xc = P_w @ R_cw.T + t_cw
