@@ -180,6 +180,24 @@ def test_ctrl_c_keeps_the_frames_localized_so_far(pnl_site, pnl_map, tmp_path, c
     assert 4 <= len(got) <= 5 and set(got.stamps) <= set(seq.stamps[:5])
 
 
+def _live_camera(seq, frames: int, end: BaseException | type):
+    """``seq``'s first ``frames`` frames as a live camera gives them (its length a bound, no files), then ``end`` raised:
+    the user's Ctrl-C, a camera unplugged."""
+
+    class Live:
+        camera, stamps, groundtruth, files = seq.camera, seq.stamps, seq.groundtruth, None
+
+        def __len__(self):
+            return 10 ** 9
+
+        def frames(self, tolerant=False):
+            for i in range(frames):
+                yield seq.read(i)
+            raise end
+
+    return Live()
+
+
 def test_a_stream_ended_by_ctrl_c_writes_what_it_localized(pnl_site, pnl_map, tmp_path):
     """A live camera's stream ends with Ctrl-C: the frames localized so far (here by the on-device P&L fallback, no
     server) are written with their sources, and the stats say it was interrupted. Its length is a bound (10**9
@@ -193,23 +211,11 @@ def test_a_stream_ended_by_ctrl_c_writes_what_it_localized(pnl_site, pnl_map, tm
 
     root, out, cam, box = pnl_site
     seq = open_sequence(out / "seq")
-
-    class LiveUntilCtrlC:  # the sequence's frames, then the user's Ctrl-C
-        camera, stamps, groundtruth, files = seq.camera, seq.stamps, seq.groundtruth, None
-
-        def __len__(self):
-            return 10 ** 9
-
-        def frames(self, tolerant=False):
-            for i in range(5):
-                yield seq.read(i)
-            raise KeyboardInterrupt
-
     traj_path = tmp_path / "live.txt"
     local = load_local(pnl_map[0])
     tracemalloc.start()
     try:
-        traj, st = stream_sequence(LiveUntilCtrlC(), None, local, traj_path)
+        traj, st = stream_sequence(_live_camera(seq, 5, KeyboardInterrupt), None, local, traj_path)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -232,23 +238,11 @@ def test_a_stream_keeps_every_frame_on_disk_as_it_goes_and_only_the_last_ones_in
 
     _, out, _, _ = pnl_site
     seq = open_sequence(out / "seq")
-
-    class Unplugged:  # the sequence's frames, then the camera is gone
-        camera, stamps, groundtruth, files = seq.camera, seq.stamps, seq.groundtruth, None
-
-        def __len__(self):
-            return 10 ** 9
-
-        def frames(self, tolerant=False):
-            for i in range(6):
-                yield seq.read(i)
-            raise RuntimeError("camera unplugged")
-
     path = tmp_path / "live.txt"
     part = sources_path(path).with_name(sources_path(path).name + ".part")
     on_disk = []
     with pytest.raises(RuntimeError, match="unplugged"):
-        stream_sequence(Unplugged(), None, load_local(pnl_map[0]), path,
+        stream_sequence(_live_camera(seq, 6, RuntimeError("camera unplugged")), None, load_local(pnl_map[0]), path,
                         on_frame=lambda i, *_: on_disk.append(len(part.read_text().splitlines()) - 1))
     assert on_disk == [1, 2, 3, 4, 5, 6]  # each frame written before the next is read
     rows = sources_path(path).read_text().splitlines()[1:]
