@@ -239,16 +239,21 @@ def test_a_stream_keeps_every_frame_on_disk_as_it_goes_and_only_the_last_ones_in
     _, out, _, _ = pnl_site
     seq = open_sequence(out / "seq")
     path = tmp_path / "live.txt"
-    part = sources_path(path).with_name(sources_path(path).name + ".part")
-    on_disk = []
+    part, tum_part = (p.with_name(p.name + ".part") for p in (sources_path(path), path))
+    on_disk, posed = [], []
+
+    def on_frame(i, frame, T, *_):  # what is on disk as each frame's pose comes back
+        posed.append(T is not None)
+        on_disk.append((len(part.read_text().splitlines()) - 1, len(tum_part.read_text().splitlines())))
+
     with pytest.raises(RuntimeError, match="unplugged"):
         stream_sequence(_live_camera(seq, 6, RuntimeError("camera unplugged")), None, load_local(pnl_map[0]), path,
-                        on_frame=lambda i, *_: on_disk.append(len(part.read_text().splitlines()) - 1))
-    assert on_disk == [1, 2, 3, 4, 5, 6]  # each frame written before the next is read
+                        on_frame=on_frame)
+    assert on_disk == [(i + 1, sum(posed[:i + 1])) for i in range(6)]  # each frame written before the next is read
     rows = sources_path(path).read_text().splitlines()[1:]
     got = read_tum(path)
-    assert len(rows) == 6 and len(got) == sum(r.split()[1] == "local" for r in rows) >= 5
-    assert not part.exists() and not path.with_name(path.name + ".part").exists()
+    assert len(rows) == 6 and len(got) == sum(r.split()[1] == "local" for r in rows) == sum(posed) >= 5
+    assert not part.exists() and not tum_part.exists()
     for stamp, T in zip(got.stamps, got.poses):
         assert seq.groundtruth_pose(stamp).distance_to(T)[0] < 0.015
 
