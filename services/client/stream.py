@@ -14,6 +14,7 @@ only the last ``memory_frames`` frames (the statistics and the picture are their
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -26,6 +27,7 @@ from protocol.messages import reason_kind
 from services.client.client import LocalizationClient, reply_pose
 from services.client.fallback import LocalFallback
 from services.geometry.se3 import Pose
+from services.io.atomic import fsync_dir
 from services.io.trajectory import Trajectory, format_tum_line, relative_motions
 
 __all__ = ["StreamStats", "stream_sequence", "sources_path"]
@@ -141,14 +143,8 @@ class _Journal:
             os.fsync(f.fileno())
             f.close()
             os.replace(self._part(p), p)
-        try:
-            dfd = os.open(self.paths[0].parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
-        except OSError:
-            pass
+        with contextlib.suppress(OSError):
+            fsync_dir(self.paths[0].parent)
 
 
 def _forget_oldest(traj: Trajectory, st: StreamStats, keep: int) -> None:
@@ -191,6 +187,9 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
     # a recording's motions up front; none for a live camera (its length is a bound, 10**9 frames: a list of that many
     # Nones took 8 GB and 17 s before the first frame)
     motions = relative_motions(odometry, seq.stamps[:n]) if odometry is not None else []
+
+    def motion_of(i: int):
+        return motions[i] if i < len(motions) else None
     unsent: list = []  # motions of frames not sent since the last one that was (unreadable): the next carries them
     journal = _Journal(out) if out is not None else None
 
@@ -207,7 +206,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
             if i >= n:
                 break
             if frame.image is None:  # a missing or broken file (logged): no pose for it, the stream goes on
-                unsent.append(motions[i] if i < len(motions) else None)
+                unsent.append(motion_of(i))
                 st.frames += 1
                 st.none += 1
                 record((frame.stamp, "-", "unreadable", "-", float("nan")), None)
@@ -222,7 +221,7 @@ def stream_sequence(seq, client: LocalizationClient | None, fallback: LocalFallb
             rep = None
             stamp_f = _seconds(seq, frame.stamp)
             stamp_f = float(i) if stamp_f is None else stamp_f
-            motion, unsent = _since_last_sent(unsent, motions[i] if i < len(motions) else None), []
+            motion, unsent = _since_last_sent(unsent, motion_of(i)), []
             if client is not None:
                 data, enc = _frame_bytes(seq, i, frame.image)
                 t0 = time.perf_counter()

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from services.geometry.se3 import Pose
+from services.io.atomic import fsync_dir
 from services.io.scan import Scan
 
 __all__ = ["cache_dirs", "load", "save", "CACHE_SUFFIX"]
@@ -100,7 +101,7 @@ def _write_dir(d: Path, scan: Scan, meta: dict) -> None:
                 write(f)
                 f.flush()
                 os.fsync(f.fileno())
-        _fsync_dir(tmp)
+        fsync_dir(tmp)
         old = d.with_name(f".{d.name}.old-{uuid.uuid4().hex[:12]}") if d.exists() else None
         try:
             if old is not None:
@@ -111,17 +112,10 @@ def _write_dir(d: Path, scan: Scan, meta: dict) -> None:
                 raise
             shutil.rmtree(tmp, ignore_errors=True)  # a concurrent load put its (equivalent) cache in place first
         else:
-            _fsync_dir(d.parent)
+            fsync_dir(d.parent)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
 
-
-def _fsync_dir(d: Path) -> None:
-    fd = os.open(d, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

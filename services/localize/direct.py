@@ -148,6 +148,7 @@ def solve_motion_only(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.nda
     Returns (R, t, inlier mask, whitened RMSE of the inliers); the RMSE is inf when fewer than 6 remain."""
     l11, l21, l22 = _sqrt_info(info)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    R, t = np.array(R, np.float64, order="C"), np.array(t, np.float64)  # (writable, C: the kernel's one signature)
 
     def whitened(R, t, P, uv, l11, l21, l22):
         Xc = P @ R.T + t
@@ -168,8 +169,7 @@ def solve_motion_only(P: np.ndarray, uv: np.ndarray, info: np.ndarray, K: np.nda
             J, e = np.empty((2 * n, 6)), np.empty(2 * n)
         for _ in range(iters):
             if kern is not None:
-                Rc, tc = np.array(R, np.float64, order="C"), np.array(t, np.float64)  # (writable, C: one signature)
-                kern.normal_equations(*m, Rc, tc, fx, fy, cx, cy, huber, H, g)
+                kern.normal_equations(*m, R, t, fx, fy, cx, cy, huber, H, g)
             else:
                 e[:n], e[n:], Xc = whitened(R, t, *m)
                 r = np.sqrt(e[:n] * e[:n] + e[n:] * e[n:])

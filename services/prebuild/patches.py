@@ -85,16 +85,15 @@ class LandmarkPatches:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
                 arrays = {k: z[k] for k in ("lm_ids", "patches", "normals", "src", "src_T_cw", "K")}
-                pos = z["pos"].astype(np.float64) if "pos" in z.files else None  # optional: older files lack it
-                noise = z["noise"].astype(np.float32) if "noise" in z.files else None  # (so does this)
+                pos = z["pos"] if "pos" in z.files else None  # optional: older files lack it
+                noise = z["noise"] if "noise" in z.files else None  # (so does this)
         except (OSError, KeyError, ValueError, json.JSONDecodeError) as e:
             raise ValueError(f"{path}: not a landmark patch file ({e})") from None
         if meta.get("format_version") != PATCH_FORMAT_VERSION:
             raise ValueError(f"{path}: landmark patches format {meta.get('format_version')} is not {PATCH_FORMAT_VERSION}; "
                              "rebuild the map")
-        p = cls(arrays["lm_ids"].astype(np.int64), arrays["patches"], arrays["normals"].astype(np.float64),
-                arrays["src"].astype(np.int64), arrays["src_T_cw"].astype(np.float64), arrays["K"].astype(np.float64),
-                str(meta.get("map_fingerprint", "")), pos, noise)
+        p = cls(arrays["lm_ids"], arrays["patches"], arrays["normals"], arrays["src"], arrays["src_T_cw"], arrays["K"],
+                str(meta.get("map_fingerprint", "")), pos, noise)  # (__post_init__ gives each field its dtype)
         n = len(p.lm_ids)
         if p.patches.shape[0] != n or p.normals.shape != (n, 3) or len(p.src) != n or (n and p.src.max() >= len(p.src_T_cw)) \
                 or (pos is not None and (pos.shape != (n, 3) or not np.isfinite(pos).all())) \
